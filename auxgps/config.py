@@ -1,0 +1,155 @@
+"""Typed configuration: frozen dataclasses filled from YAML.
+
+Every section is a frozen pydantic dataclass that forbids unknown keys and checks ranges, so a typo or a
+negative size is one clear error naming the file and the key (``config/x.yaml: cubes.0.size_m: ...``), never
+a silently ignored setting. Angles are degrees in the files and radians inside the package.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal, TypeVar
+
+import yaml
+from pydantic import ConfigDict, Field, TypeAdapter, ValidationError, model_validator
+from pydantic.dataclasses import dataclass
+
+from auxgps.errors import ConfigError
+
+_STRICT = ConfigDict(extra="forbid")
+
+Positive = Annotated[float, Field(gt=0)]
+NonNegative = Annotated[float, Field(ge=0)]
+Probability = Annotated[float, Field(ge=0, le=1)]
+
+
+@dataclass(config=_STRICT, frozen=True)
+class CameraConfig:
+    """A pinhole camera: resolution and horizontal field of view, or a full intrinsic matrix.
+
+    ``K`` (3x3, px) overrides ``hfov_deg``; ``dist`` holds OpenCV distortion coefficients (k1 k2 p1 p2 [k3 ...]).
+    """
+
+    width_px: Annotated[int, Field(gt=0, le=20000)] = 1280
+    height_px: Annotated[int, Field(gt=0, le=20000)] = 720
+    hfov_deg: Annotated[float, Field(gt=1, lt=179)] = 90.0
+    K: list[list[float]] | None = None
+    dist: list[float] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _check_matrix(self) -> "CameraConfig":
+        if self.K is not None and (len(self.K) != 3 or any(len(row) != 3 for row in self.K)):
+            raise ValueError("K must be a 3x3 matrix")
+        if len(self.dist) not in (0, 4, 5, 8, 12, 14):
+            raise ValueError("dist must hold 0, 4, 5, 8, 12 or 14 OpenCV coefficients")
+        return self
+
+
+@dataclass(config=_STRICT, frozen=True)
+class MountConfig:
+    """The camera's rotation on the body, relative to straight down with image-up towards the nose."""
+
+    roll_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0
+    pitch_deg: Annotated[float, Field(ge=-90, le=90)] = 0.0
+    yaw_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0
+
+
+@dataclass(config=_STRICT, frozen=True)
+class DetectorConfig:
+    """Feature detector settings (ORB)."""
+
+    kind: Literal["orb"] = "orb"
+    n_features: Annotated[int, Field(ge=1, le=100000)] = 1000
+    fast_threshold: Annotated[int, Field(ge=1, le=255)] = 10
+    n_levels: Annotated[int, Field(ge=1, le=16)] = 3
+    scale_factor: Annotated[float, Field(gt=1.0, le=4.0)] = 1.3
+    edge_threshold_px: Annotated[int, Field(ge=1, le=200)] = 16
+
+
+@dataclass(config=_STRICT, frozen=True)
+class NoiseModelConfig:
+    """What the estimator assumes about its inputs (one sigma). Not the simulator's noise."""
+
+    pixel_px: Positive = 1.0
+    attitude_deg: Positive = 0.2
+    heading_deg: Positive = 0.5
+    gps_horizontal_m: Positive = 0.08
+    altitude_m: Positive = 0.08
+
+
+@dataclass(config=_STRICT, frozen=True)
+class MappingConfig:
+    """Geotagging landmarks while GPS is good."""
+
+    match_radius_px: Positive = 12.0
+    max_hamming: Annotated[int, Field(ge=0, le=256)] = 64
+    min_seen: Annotated[int, Field(ge=1)] = 11
+    initial_height_sigma_m: Positive = 20.0
+
+
+@dataclass(config=_STRICT, frozen=True)
+class PositioningConfig:
+    """Positioning from the map when GPS is lost."""
+
+    max_hamming: Annotated[int, Field(ge=0, le=256)] = 64
+    k_best: Annotated[int, Field(ge=1, le=8)] = 3
+    inlier_px: Positive = 4.0
+    min_inliers: Annotated[int, Field(ge=2)] = 4
+    ambiguity_ratio: Annotated[float, Field(gt=0, le=1)] = 0.6
+    max_seeds: Annotated[int, Field(ge=1)] = 300
+    max_speed_m_s: Positive = 5.0
+    footprint_margin_m: NonNegative = 2.0
+
+
+@dataclass(config=_STRICT, frozen=True)
+class PipelineConfig:
+    """Everything the estimator needs: camera, mount, detector, noise model, mapping and positioning."""
+
+    camera: CameraConfig = Field(default_factory=CameraConfig)
+    mount: MountConfig = Field(default_factory=MountConfig)
+    detector: DetectorConfig = Field(default_factory=DetectorConfig)
+    noise: NoiseModelConfig = Field(default_factory=NoiseModelConfig)
+    mapping: MappingConfig = Field(default_factory=MappingConfig)
+    positioning: PositioningConfig = Field(default_factory=PositioningConfig)
+
+
+T = TypeVar("T")
+
+
+def _format_validation_error(path: Path | str, err: ValidationError) -> str:
+    parts = []
+    for item in err.errors():
+        key = ".".join(str(x) for x in item["loc"]) or "(top level)"
+        msg = item["msg"]
+        if item["type"] == "extra_forbidden":
+            msg = "unknown key"
+        parts.append(f"{key}: {msg}")
+    return f"{path}: " + "; ".join(parts)
+
+
+def parse_as(cls: type[T], data: Any, source: Path | str) -> T:
+    """Validate plain data (from YAML) into ``cls``; raise :class:`ConfigError` naming ``source`` and the key."""
+    try:
+        return TypeAdapter(cls).validate_python(data if data is not None else {})
+    except ValidationError as err:
+        raise ConfigError(_format_validation_error(source, err)) from None
+
+
+def read_yaml(path: Path | str) -> Any:
+    """Read one YAML file; a missing or malformed file is a :class:`ConfigError` naming it."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read: {err.strerror or err}") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML: {err}".replace("\n", " ")) from None
+
+
+def load_pipeline_config(path: Path | str | None = None) -> PipelineConfig:
+    """Load a pipeline config from YAML, or the defaults when ``path`` is None."""
+    if path is None:
+        return PipelineConfig()
+    return parse_as(PipelineConfig, read_yaml(path), path)

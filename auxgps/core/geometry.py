@@ -1,0 +1,92 @@
+"""Frames and rotations.
+
+Conventions
+-----------
+- Local frame: NED (north, east, down) in metres, anchored at a geodetic origin (:class:`LocalFrame`).
+- Body frame: FRD (forward, right, down). ``R_ned_body`` maps body coordinates into NED.
+- Camera frame: OpenCV (x right, y down in the image, z along the optical axis). ``R_body_cam`` maps camera
+  coordinates into the body frame. The default mount looks straight down with image-up towards the nose.
+- Euler angles are aerospace ZYX (yaw, then pitch, then roll), in radians.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pymap3d
+
+#: Camera looking straight down, image top towards the nose: cam x = body right, cam y = body back, cam z = body down.
+R_BODY_CAM_DOWN = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def R_ned_body_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
+    """Rotation body -> NED from aerospace ZYX Euler angles (rad). Returns (3, 3) float64."""
+    cr, sr = np.cos(roll_rad), np.sin(roll_rad)
+    cp, sp = np.cos(pitch_rad), np.sin(pitch_rad)
+    cy, sy = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def euler_from_R_ned_body(R_ned_body: np.ndarray) -> tuple[float, float, float]:
+    """Aerospace ZYX Euler angles (roll, pitch, yaw) in rad from a body -> NED rotation."""
+    pitch = -np.arcsin(np.clip(R_ned_body[2, 0], -1.0, 1.0))
+    roll = np.arctan2(R_ned_body[2, 1], R_ned_body[2, 2])
+    yaw = np.arctan2(R_ned_body[1, 0], R_ned_body[0, 0])
+    return float(roll), float(pitch), float(yaw)
+
+
+def R_body_cam_from_mount(roll_rad: float = 0.0, pitch_rad: float = 0.0, yaw_rad: float = 0.0) -> np.ndarray:
+    """Camera -> body rotation for a camera turned by ZYX angles (rad, in the body frame) from straight down."""
+    return R_ned_body_from_euler(roll_rad, pitch_rad, yaw_rad) @ R_BODY_CAM_DOWN
+
+
+def intersect_rays_with_horizontal_plane(
+    origin_ned_m: np.ndarray, dirs_ned: np.ndarray, plane_down_m: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Intersect rays ``origin + t * dir`` (t > 0) with the plane ``down = plane_down_m``.
+
+    Parameters
+    ----------
+    origin_ned_m : (3,) float64, m
+    dirs_ned : (N, 3) float64, any length
+    plane_down_m : float, m (0 is the origin's level; up is negative)
+
+    Returns
+    -------
+    points_ned_m : (N, 3) float64, m; NaN where there is no forward intersection
+    valid : (N,) bool
+    """
+    dirs_ned = np.atleast_2d(dirs_ned)
+    dz = dirs_ned[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (plane_down_m - origin_ned_m[2]) / dz
+    valid = np.isfinite(t) & (t > 0)
+    points = origin_ned_m[None, :] + t[:, None] * dirs_ned
+    points[~valid] = np.nan
+    return points, valid
+
+
+@dataclass(frozen=True)
+class LocalFrame:
+    """A local NED frame anchored at a geodetic origin (WGS84). All conversions go through pymap3d."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+
+    def to_geodetic(self, p_ned_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(N, 3) or (3,) NED metres -> (lat_deg, lon_deg, alt_amsl_m) arrays."""
+        p = np.asarray(p_ned_m, dtype=float)
+        return pymap3d.ned2geodetic(p[..., 0], p[..., 1], p[..., 2], self.lat_deg, self.lon_deg, self.alt_amsl_m)
+
+    def to_ned(self, *, lat_deg, lon_deg, alt_amsl_m) -> np.ndarray:
+        """Geodetic (degrees, metres AMSL) -> NED metres, shape (..., 3)."""
+        n, e, d = pymap3d.geodetic2ned(lat_deg, lon_deg, alt_amsl_m, self.lat_deg, self.lon_deg, self.alt_amsl_m)
+        return np.stack([np.asarray(n, float), np.asarray(e, float), np.asarray(d, float)], axis=-1)

@@ -1,0 +1,24 @@
+"""One error root for everything auxgps raises on purpose.
+
+The CLI turns any :class:`AuxGpsError` into one line on stderr and exit code 1; anything else is a bug.
+"""
+
+
+class AuxGpsError(Exception):
+    """Root of every error auxgps raises for bad input or a failed precondition."""
+
+
+class ConfigError(AuxGpsError):
+    """A configuration or world file is missing, unreadable, or has a bad key or value."""
+
+
+class CameraError(AuxGpsError):
+    """A camera model is inconsistent (for example a non-positive focal length)."""
+
+
+class FrameError(AuxGpsError):
+    """An image frame cannot be used (wrong shape, wrong type, empty)."""
+
+
+class MapError(AuxGpsError):
+    """A landmark map file is missing, truncated, or of an unknown version."""

@@ -1,0 +1,233 @@
+"""A simulated camera: renders a :class:`~auxgps.sim.world.World` exactly as a :class:`PinholeCamera` sees it.
+
+The ground is a flat colour or a texture warped by the ground-plane homography; cube faces are filled as
+anti-aliased polygons with per-face Lambertian shading, resolved per pixel with a depth buffer. Lens
+distortion, when the camera has any, is applied last by remapping the ideal image. The renderer also gives,
+for evaluation only, the true 3D point behind any pixel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from auxgps.core.camera import CameraPose, PinholeCamera
+from auxgps.sim.world import World
+
+#: Unit vectors from a surface towards the two lights (NED): a sun high in the south-east, a dim sky fill.
+_SUN_NED = np.array([-0.35, 0.45, -0.82]) / np.linalg.norm([-0.35, 0.45, -0.82])
+_FILL_NED = np.array([0.6, -0.2, -0.77]) / np.linalg.norm([0.6, -0.2, -0.77])
+
+
+def face_shade(normal_ned: np.ndarray) -> float:
+    """Brightness factor of a face with outward unit normal ``normal_ned``: ambient + sun + sky fill."""
+    return float(0.30 + 0.55 * max(0.0, normal_ned @ _SUN_NED) + 0.20 * max(0.0, normal_ned @ _FILL_NED))
+
+
+@dataclass(frozen=True)
+class ImageEffects:
+    """Sensor effects applied after rendering: Gaussian noise (sigma, grey levels), blur (sigma, px), gain."""
+
+    noise_sigma: float = 0.0
+    blur_sigma_px: float = 0.0
+    exposure_gain: float = 1.0
+
+
+@dataclass
+class RenderedFrame:
+    """A rendered image and, for evaluation only, the depth behind every pixel.
+
+    Attributes
+    ----------
+    image_bgr : (H, W, 3) uint8
+    pose : the true camera pose it was rendered from
+    depth_m : (H, W) float32, z-depth along the optical axis of the nearest surface (m)
+    """
+
+    image_bgr: np.ndarray
+    pose: CameraPose
+    depth_m: np.ndarray
+    camera: PinholeCamera
+    visible_vertices_ned: np.ndarray = field(repr=False)
+    visible_vertices_px: np.ndarray = field(repr=False)
+
+    def points_ned(self) -> np.ndarray:
+        """(H, W, 3) float64: the true NED point behind every pixel centre."""
+        H, W = self.depth_m.shape
+        u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+        xy = self.camera.pixels_to_normalized(np.column_stack([u.ravel(), v.ravel()])).reshape(H, W, 2)
+        z = self.depth_m.astype(float)[..., None]
+        p_cam = np.concatenate([xy * z, z], axis=2)
+        return p_cam @ self.pose.R_ned_cam.T + self.pose.p_cam_in_ned_m
+
+    def points_at(self, uv_px: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels -> (N, 3) true NED points behind their (rounded) pixel centres."""
+        uv = np.atleast_2d(np.asarray(uv_px, float))
+        col = np.clip(np.rint(uv[:, 0]).astype(int), 0, self.depth_m.shape[1] - 1)
+        row = np.clip(np.rint(uv[:, 1]).astype(int), 0, self.depth_m.shape[0] - 1)
+        z = self.depth_m[row, col].astype(float)
+        xy = self.camera.pixels_to_normalized(np.column_stack([col, row]).astype(float))
+        p_cam = np.column_stack([xy * z[:, None], z])
+        return p_cam @ self.pose.R_ned_cam.T + self.pose.p_cam_in_ned_m
+
+    def true_points_at(self, uv_px: np.ndarray, snap_px: float = 2.5) -> np.ndarray:
+        """The true 3D point a point feature at ``uv_px`` stands for, (N, 3) NED.
+
+        A corner feature lies on a cube vertex, where the pixel itself may show the ground behind the
+        silhouette; so a feature within ``snap_px`` of a visible vertex's projection is that vertex, and any
+        other feature is the surface point behind its pixel.
+        """
+        uv = np.atleast_2d(np.asarray(uv_px, float))
+        points = self.points_at(uv)
+        if len(self.visible_vertices_px):
+            d = np.linalg.norm(uv[:, None, :] - self.visible_vertices_px[None, :, :], axis=2)
+            nearest = np.argmin(d, axis=1)
+            snap = d[np.arange(len(uv)), nearest] <= snap_px
+            points[snap] = self.visible_vertices_ned[nearest[snap]]
+        return points
+
+
+class Renderer:
+    """Renders one world through one camera. Build once, call :meth:`render` per pose."""
+
+    def __init__(self, world: World, camera: PinholeCamera) -> None:
+        self.world = world
+        self.camera = camera
+        W, H = camera.width_px, camera.height_px
+        # Rendering happens in an ideal (undistorted) pinhole image with the same K; distortion is a remap after.
+        self._K = camera.K
+        Kinv = np.linalg.inv(camera.K)
+        u = np.arange(W, dtype=np.float32)
+        v = np.arange(H, dtype=np.float32)
+        self._xn = ((u - camera.K[0, 2]) * Kinv[0, 0]).astype(np.float32)  # (W,)
+        self._yn = ((v - camera.K[1, 2]) * Kinv[1, 1]).astype(np.float32)  # (H,)
+        self._cubes = [
+            (cube, [(quad, normal, np.array(cube.color_bgr, float) * face_shade(normal)) for quad, normal in cube.faces()])
+            for cube in world.cubes
+        ]
+        self._vertices = world.all_vertices_ned()
+        self._distort_maps = self._make_distortion_maps() if camera.has_distortion else None
+
+    def _make_distortion_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """For each pixel of the distorted image, where it comes from in the ideal image."""
+        W, H = self.camera.width_px, self.camera.height_px
+        u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+        xy = self.camera.pixels_to_normalized(np.column_stack([u.ravel(), v.ravel()]))
+        src = xy * np.array([self._K[0, 0], self._K[1, 1]]) + self._K[:2, 2]
+        return src[:, 0].reshape(H, W).astype(np.float32), src[:, 1].reshape(H, W).astype(np.float32)
+
+    def _ground(self, pose: CameraPose) -> np.ndarray:
+        W, H = self.camera.width_px, self.camera.height_px
+        world = self.world
+        if world.ground_texture_bgr is None:
+            return np.full((H, W, 3), world.ground_color_bgr, np.uint8)
+        R_cam_ned = pose.R_ned_cam.T
+        H_img_ground = self._K @ np.column_stack([R_cam_ned[:, 0], R_cam_ned[:, 1], -R_cam_ned @ pose.p_cam_in_ned_m])
+        th, tw = world.ground_texture_bgr.shape[:2]
+        s = world.ground_m_per_px
+        A = np.array([[0.0, -s, (th / 2.0) * s], [s, 0.0, -(tw / 2.0) * s], [0.0, 0.0, 1.0]])
+        return cv2.warpPerspective(
+            world.ground_texture_bgr, H_img_ground @ A, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101
+        )
+
+    def _ground_depth(self, pose: CameraPose) -> np.ndarray:
+        """(H, W) float32 z-depth of the ground plane (down = 0) behind every ideal pixel; inf above the horizon."""
+        R = pose.R_ned_cam
+        ray_down = R[2, 0] * self._xn[None, :] + R[2, 1] * self._yn[:, None] + R[2, 2]
+        with np.errstate(divide="ignore"):
+            z = (0.0 - pose.p_cam_in_ned_m[2]) / ray_down
+        z[~(z > 0)] = np.inf
+        return z.astype(np.float32)
+
+    def render(
+        self, pose: CameraPose, effects: ImageEffects | None = None, rng: np.random.Generator | None = None
+    ) -> RenderedFrame:
+        """Render the view from ``pose``. ``rng`` drives the sensor noise, if any."""
+        image = self._ground(pose)
+        zbuf = np.full(image.shape[:2], np.inf, np.float32)
+        c = pose.p_cam_in_ned_m
+        for cube, faces in sorted(self._cubes, key=lambda cf: -np.linalg.norm(cf[0].vertices_ned().mean(0) - c)):
+            front = [f for f in faces if f[1] @ (f[0].mean(axis=0) - c) < 0]  # faces turned towards the camera
+            self._draw_cube(image, zbuf, pose, front)
+        depth = np.minimum(zbuf, self._ground_depth(pose))
+        if self._distort_maps is not None:
+            mx, my = self._distort_maps
+            image = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            depth = cv2.remap(depth, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+        if effects is not None:
+            image = apply_effects(image, effects, rng)
+        vis_ned, vis_px = self._visible_vertices(pose, depth)
+        return RenderedFrame(image, pose, depth, self.camera, vis_ned, vis_px)
+
+    #: Supersampling factor for the anti-aliased cube edges.
+    _SS = 4
+
+    def _draw_cube(self, image, zbuf, pose, faces) -> None:
+        """Composite one convex cube: supersampled coverage and colour, per-pixel depth test against ``zbuf``."""
+        H, W = zbuf.shape
+        fxy = np.array([self._K[0, 0], self._K[1, 1]])
+        polys = []
+        for quad, normal, color in faces:
+            p_cam = pose.ned_to_cam(quad)
+            if np.any(p_cam[:, 2] <= 1e-3):
+                return  # a cube reaching the camera plane is not drawn (the camera flies above the cubes)
+            polys.append((p_cam[:, :2] / p_cam[:, 2:3] * fxy + self._K[:2, 2], quad, normal, color))
+        if not polys:
+            return
+        uv_all = np.vstack([p[0] for p in polys])
+        x0 = max(int(np.floor(uv_all[:, 0].min())) - 1, 0)
+        y0 = max(int(np.floor(uv_all[:, 1].min())) - 1, 0)
+        x1 = min(int(np.ceil(uv_all[:, 0].max())) + 2, W)
+        y1 = min(int(np.ceil(uv_all[:, 1].max())) + 2, H)
+        if x1 <= x0 or y1 <= y0:
+            return
+        ss = self._SS
+        hi = np.zeros(((y1 - y0) * ss, (x1 - x0) * ss, 4), np.float32)  # premultiplied colour and coverage
+        z = np.full((y1 - y0, x1 - x0), -np.inf, np.float32)
+        for uv, quad, normal, color in polys:
+            # Pixel centres of the supersampled grid sit at (i + 0.5) / ss - 0.5 in full-size pixels.
+            pts = np.rint(((uv - [x0, y0]) * ss + (ss - 1) / 2.0) * 16).astype(np.int32)
+            cv2.fillConvexPoly(hi, pts, (*color, 1.0), lineType=cv2.LINE_8, shift=4)
+            # Depth of the face plane at each pixel centre; the cube's surface is the farthest front plane.
+            nR = normal @ pose.R_ned_cam
+            denom = nR[0] * self._xn[None, x0:x1] + nR[1] * self._yn[y0:y1, None] + nR[2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                zf = (normal @ (quad[0] - pose.p_cam_in_ned_m)) / denom
+            z = np.maximum(z, np.where(zf > 0, zf, -np.inf).astype(np.float32))
+        lo = cv2.resize(hi, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
+        alpha = lo[..., 3]
+        zpatch = zbuf[y0:y1, x0:x1]
+        closer = (z > 0) & (z <= zpatch + 1e-3)
+        a = alpha * closer
+        patch = image[y0:y1, x0:x1].astype(np.float32)
+        patch = lo[..., :3] * closer[..., None] + (1.0 - a[..., None]) * patch
+        image[y0:y1, x0:x1] = np.clip(np.rint(patch), 0, 255).astype(np.uint8)
+        zbuf[y0:y1, x0:x1] = np.where((alpha >= 0.5) & closer, z, zpatch)
+
+    def _visible_vertices(self, pose: CameraPose, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if len(self._vertices) == 0:
+            return np.zeros((0, 3)), np.zeros((0, 2))
+        p_cam = pose.ned_to_cam(self._vertices)
+        uv, in_front = self.camera.project_cam(p_cam)
+        inside = in_front & self.camera.in_image(np.nan_to_num(uv, nan=-1.0))
+        col = np.clip(np.rint(np.nan_to_num(uv[:, 0])).astype(int), 0, depth.shape[1] - 1)
+        row = np.clip(np.rint(np.nan_to_num(uv[:, 1])).astype(int), 0, depth.shape[0] - 1)
+        # A vertex is hidden when something is clearly in front of it at its own pixel.
+        unoccluded = p_cam[:, 2] <= depth[row, col] + 0.05 + 0.01 * p_cam[:, 2]
+        keep = inside & unoccluded
+        return self._vertices[keep], uv[keep]
+
+
+def apply_effects(image: np.ndarray, effects: ImageEffects, rng: np.random.Generator | None) -> np.ndarray:
+    """Exposure gain, then blur, then Gaussian noise (seeded by ``rng``)."""
+    out = image.astype(np.float32)
+    if effects.exposure_gain != 1.0:
+        out *= effects.exposure_gain
+    if effects.blur_sigma_px > 0:
+        out = cv2.GaussianBlur(out, (0, 0), effects.blur_sigma_px)
+    if effects.noise_sigma > 0:
+        rng = rng if rng is not None else np.random.default_rng(0)
+        out += rng.normal(0.0, effects.noise_sigma, out.shape).astype(np.float32)
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)

@@ -1,0 +1,183 @@
+"""Simulated worlds: a ground plane (flat colour or texture) and cubes standing on it, read from YAML.
+
+World file keys (all lengths in metres, angles in degrees, colours BGR 0-255 or a name)::
+
+    origin: {lat_deg: 47.3977, lon_deg: 8.5456, alt_amsl_m: 488.0}   # the local frame's anchor, on the ground
+    ground: {color: [128, 128, 128]}          # or {texture: PATH, m_per_px: 0.05}; PATH relative to the file
+    cubes:
+      - {east_m: 1.0, north_m: 2.0, size_m: 0.5, color: red, yaw_deg: 0}
+    description: free text (optional)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass as std_dataclass
+from pathlib import Path
+from typing import Annotated, Union
+
+import cv2
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+from pydantic.dataclasses import dataclass
+
+from auxgps.config import _STRICT, parse_as, read_yaml
+from auxgps.core.geometry import LocalFrame
+from auxgps.errors import ConfigError
+
+COLOR_NAMES_BGR: dict[str, tuple[int, int, int]] = {
+    "black": (20, 20, 20),
+    "white": (235, 235, 235),
+    "red": (40, 40, 200),
+    "green": (40, 170, 40),
+    "blue": (200, 70, 30),
+    "yellow": (30, 210, 220),
+    "orange": (20, 120, 240),
+    "purple": (150, 40, 130),
+    "grey": (128, 128, 128),
+    "gray": (128, 128, 128),
+}
+
+ColorValue = Union[str, Annotated[list[Annotated[int, Field(ge=0, le=255)]], Field(min_length=3, max_length=3)]]
+
+
+def _color_to_bgr(value: ColorValue) -> tuple[int, int, int]:
+    if isinstance(value, str):
+        if value.lower() not in COLOR_NAMES_BGR:
+            raise ValueError(f"unknown colour name {value!r}; known: {', '.join(sorted(COLOR_NAMES_BGR))}")
+        return COLOR_NAMES_BGR[value.lower()]
+    return tuple(int(v) for v in value)  # type: ignore[return-value]
+
+
+@dataclass(config=_STRICT, frozen=True)
+class OriginSpec:
+    lat_deg: Annotated[float, Field(ge=-90, le=90)]
+    lon_deg: Annotated[float, Field(ge=-180, le=180)]
+    alt_amsl_m: Annotated[float, Field(ge=-500, le=9000)]
+
+
+@dataclass(config=_STRICT, frozen=True)
+class GroundSpec:
+    color: ColorValue | None = None
+    texture: str | None = None
+    m_per_px: Annotated[float, Field(gt=0)] | None = None
+
+    @field_validator("color")
+    @classmethod
+    def _check_color(cls, v):
+        if v is not None:
+            _color_to_bgr(v)
+        return v
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> "GroundSpec":
+        if (self.color is None) == (self.texture is None):
+            raise ValueError("give exactly one of color or texture")
+        if self.texture is not None and self.m_per_px is None:
+            raise ValueError("texture needs m_per_px")
+        return self
+
+
+@dataclass(config=_STRICT, frozen=True)
+class CubeSpec:
+    east_m: float
+    north_m: float
+    size_m: Annotated[float, Field(gt=0, le=100)]
+    color: ColorValue = "white"
+    yaw_deg: Annotated[float, Field(ge=-360, le=360)] = 0.0
+
+    @field_validator("color")
+    @classmethod
+    def _check_color(cls, v):
+        _color_to_bgr(v)
+        return v
+
+
+@dataclass(config=_STRICT, frozen=True)
+class WorldSpec:
+    origin: OriginSpec
+    ground: GroundSpec = Field(default_factory=lambda: GroundSpec(color=[128, 128, 128]))
+    cubes: list[CubeSpec] = Field(default_factory=list)
+    description: str = ""
+
+
+@std_dataclass(frozen=True)
+class Cube:
+    """A cube standing on the ground. ``center_ne_m`` (2,), ``size_m``, ``yaw_rad``, ``color_bgr``."""
+
+    center_ne_m: np.ndarray
+    size_m: float
+    yaw_rad: float
+    color_bgr: tuple[int, int, int]
+
+    def vertices_ned(self) -> np.ndarray:
+        """(8, 3) corners in NED: the 4 bottom ones (down = 0) then the 4 top ones (down = -size)."""
+        h = self.size_m / 2.0
+        c, s = np.cos(self.yaw_rad), np.sin(self.yaw_rad)
+        local = np.array([[-h, -h], [h, -h], [h, h], [-h, h]])
+        ne = local @ np.array([[c, s], [-s, c]]) + self.center_ne_m
+        bottom = np.column_stack([ne, np.zeros(4)])
+        top = np.column_stack([ne, np.full(4, -self.size_m)])
+        return np.vstack([bottom, top])
+
+    def faces(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The 5 visible-able faces (no bottom) as ((4, 3) corners, (3,) outward unit normal), NED."""
+        v = self.vertices_ned()
+        top = (v[[4, 5, 6, 7]], np.array([0.0, 0.0, -1.0]))
+        faces = [top]
+        for i in range(4):
+            j = (i + 1) % 4
+            quad = v[[i, j, j + 4, i + 4]]
+            mid = quad.mean(axis=0)
+            n = mid - np.array([*self.center_ne_m, mid[2]])
+            faces.append((quad, n / np.linalg.norm(n)))
+        return faces
+
+
+@std_dataclass(frozen=True)
+class World:
+    """A loaded world: its local frame, ground and cubes."""
+
+    frame: LocalFrame
+    cubes: tuple[Cube, ...]
+    ground_color_bgr: tuple[int, int, int] | None
+    ground_texture_bgr: np.ndarray | None
+    ground_m_per_px: float | None
+    source: str = ""
+    description: str = ""
+
+    def all_vertices_ned(self) -> np.ndarray:
+        """(8 * n_cubes, 3) every cube corner, NED."""
+        if not self.cubes:
+            return np.zeros((0, 3))
+        return np.vstack([c.vertices_ned() for c in self.cubes])
+
+
+def world_from_spec(spec: WorldSpec, source: str = "", base_dir: Path | None = None) -> World:
+    texture = None
+    if spec.ground.texture is not None:
+        path = Path(spec.ground.texture)
+        if not path.is_absolute() and base_dir is not None:
+            path = base_dir / path
+        texture = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if texture is None:
+            raise ConfigError(f"{source}: ground.texture: cannot read image {path}")
+    cubes = tuple(
+        Cube(np.array([c.north_m, c.east_m], float), float(c.size_m), float(np.deg2rad(c.yaw_deg)), _color_to_bgr(c.color))
+        for c in spec.cubes
+    )
+    return World(
+        frame=LocalFrame(spec.origin.lat_deg, spec.origin.lon_deg, spec.origin.alt_amsl_m),
+        cubes=cubes,
+        ground_color_bgr=_color_to_bgr(spec.ground.color) if spec.ground.color is not None else None,
+        ground_texture_bgr=texture,
+        ground_m_per_px=spec.ground.m_per_px,
+        source=source,
+        description=spec.description,
+    )
+
+
+def load_world(path: Path | str) -> World:
+    """Read a world YAML file. Any problem is a :class:`ConfigError` naming the file and the key."""
+    path = Path(path)
+    spec = parse_as(WorldSpec, read_yaml(path), path)
+    return world_from_spec(spec, source=str(path), base_dir=path.parent)
