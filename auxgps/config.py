@@ -84,6 +84,7 @@ class MappingConfig:
     match_radius_px: Positive = 12.0
     max_hamming: Annotated[int, Field(ge=0, le=256)] = 64
     min_seen: Annotated[int, Field(ge=1)] = 11
+    gate_chi2: Positive = 9.21  # 99% for 2 degrees of freedom
     initial_height_sigma_m: Positive = 20.0
 
 
@@ -95,8 +96,9 @@ class PositioningConfig:
     k_best: Annotated[int, Field(ge=1, le=8)] = 3
     inlier_px: Positive = 4.0
     min_inliers: Annotated[int, Field(ge=2)] = 4
-    ambiguity_ratio: Annotated[float, Field(gt=0, le=1)] = 0.6
+    ambiguity_ratio: Annotated[float, Field(gt=0, le=1)] = 0.8
     max_seeds: Annotated[int, Field(ge=1)] = 300
+    max_guided_radius_px: Positive = 200.0
     max_speed_m_s: Positive = 5.0
     footprint_margin_m: NonNegative = 2.0
 

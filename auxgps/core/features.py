@@ -1,0 +1,75 @@
+"""Feature detection (ORB) and binary descriptor distances."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from auxgps.errors import FrameError
+
+DESCRIPTOR_BYTES = 32
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
+
+
+@dataclass(frozen=True)
+class Features:
+    """Point features of one frame.
+
+    uv_px : (N, 2) float64, px; descriptors : (N, 32) uint8 (ORB, 256 bits); octave : (N,) int pyramid level.
+    """
+
+    uv_px: np.ndarray
+    descriptors: np.ndarray
+    octave: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.uv_px)
+
+    @classmethod
+    def empty(cls) -> "Features":
+        return cls(np.zeros((0, 2)), np.zeros((0, DESCRIPTOR_BYTES), np.uint8), np.zeros(0, int))
+
+
+def make_detector(cfg) -> cv2.ORB:
+    """An ORB detector from a :class:`auxgps.config.DetectorConfig`."""
+    return cv2.ORB_create(
+        nfeatures=cfg.n_features,
+        scaleFactor=cfg.scale_factor,
+        nlevels=cfg.n_levels,
+        edgeThreshold=cfg.edge_threshold_px,
+        patchSize=max(cfg.edge_threshold_px, 2),
+        fastThreshold=cfg.fast_threshold,
+    )
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """Validate a frame and return it as (H, W) uint8 grey. Raises :class:`FrameError` naming what is wrong."""
+    if not isinstance(image, np.ndarray):
+        raise FrameError(f"frame is {type(image).__name__}, not an image array")
+    if image.dtype != np.uint8:
+        raise FrameError(f"frame has dtype {image.dtype}, expected uint8")
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim == 2:
+        return image
+    raise FrameError(f"frame has shape {image.shape}, expected (H, W) or (H, W, 3)")
+
+
+def detect(detector: cv2.ORB, image: np.ndarray) -> Features:
+    """Detect and describe features. An empty or featureless frame gives empty :class:`Features`."""
+    gray = to_gray(image)
+    if gray.size == 0:
+        raise FrameError("frame is empty")
+    keypoints, descriptors = detector.detectAndCompute(gray, None)
+    if descriptors is None or not keypoints:
+        return Features.empty()
+    uv = np.array([kp.pt for kp in keypoints], float)
+    octave = np.array([kp.octave for kp in keypoints], int)
+    return Features(uv, descriptors, octave)
+
+
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise Hamming distances between (N, 32) and (N, 32) uint8 descriptors -> (N,) int."""
+    return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1, dtype=np.int32)

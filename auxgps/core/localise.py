@@ -1,0 +1,235 @@
+"""Positioning without GPS: where is the camera, given this frame's features and the landmark map?
+
+With the attitude from the autopilot and the barometric height, one feature-landmark correspondence fixes the
+camera's ground position. Every correspondence (each feature to its k nearest descriptors) is thus a
+hypothesis; the hypothesis that the most distinct features agree with wins, is refined by weighted least squares
+over its inliers (3D position, height softly tied to the barometer), and is checked for ambiguity: when a
+clearly different position is nearly as well supported (a corner matched to the wrong one of identical cubes),
+there is no fix. A single wrong match cannot move the fix, because it cannot outvote the rest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from auxgps.core.camera import CameraPose, PinholeCamera
+from auxgps.core.features import Features, hamming
+from auxgps.core.landmarks import LandmarkMap
+
+
+@dataclass(frozen=True)
+class PositionPrior:
+    """Where the vehicle is believed to be: ``p_ned_m`` (3,) and a horizontal one-sigma ``sigma_h_m``."""
+
+    p_ned_m: np.ndarray
+    sigma_h_m: float
+
+
+@dataclass(frozen=True)
+class Fix:
+    """A visual position fix of the camera at ``t_s``: ``p_ned_m`` (3,), ``cov_ned_m2`` (3, 3)."""
+
+    t_s: float
+    p_ned_m: np.ndarray
+    cov_ned_m2: np.ndarray
+    n_inliers: int
+    n_correspondences: int
+    n_features: int
+
+    @property
+    def sigma_h_m(self) -> float:
+        """Horizontal one-sigma (root of the mean of the north and east variances), m."""
+        return float(np.sqrt(0.5 * (self.cov_ned_m2[0, 0] + self.cov_ned_m2[1, 1])))
+
+
+@dataclass(frozen=True)
+class NoFix:
+    """No position from this frame, and why."""
+
+    t_s: float
+    reason: str
+    n_inliers: int = 0
+    n_correspondences: int = 0
+    n_features: int = 0
+
+
+LocateResult = Fix | NoFix
+
+
+class Localiser:
+    """Locates frames against a :class:`LandmarkMap`."""
+
+    def __init__(self, cfg, camera: PinholeCamera, R_body_cam: np.ndarray, landmarks: LandmarkMap) -> None:
+        self.cfg = cfg
+        self.camera = camera
+        self.R_body_cam = R_body_cam
+        self.map = landmarks
+        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=False)
+        half_diag = np.hypot(camera.width_px, camera.height_px) / 2.0 / camera.focal_px
+        self._footprint_tan = half_diag + 0.3
+
+    def locate(self, features: Features, t_s: float, R_ned_body: np.ndarray, alt_m: float, prior: PositionPrior | None) -> LocateResult:
+        """Locate one frame. ``R_ned_body`` and ``alt_m`` come from the autopilot (attitude, barometer)."""
+        cfg = self.cfg.positioning
+        n_feat = len(features)
+        if n_feat < cfg.min_inliers:
+            return NoFix(t_s, f"{n_feat} features, fewer than {cfg.min_inliers}", n_features=n_feat)
+        if not (np.all(np.isfinite(R_ned_body)) and np.isfinite(alt_m)):
+            return NoFix(t_s, "attitude or altitude is not finite", n_features=n_feat)
+
+        cand = self._candidates(alt_m, prior)
+        if len(cand) < cfg.min_inliers:
+            return NoFix(t_s, f"{len(cand)} mapped landmarks near the predicted position", n_features=n_feat)
+
+        R_ned_cam = R_ned_body @ self.R_body_cam
+        rays = self.camera.pixels_to_rays_cam(features.uv_px) @ R_ned_cam.T  # (N, 3) unit, NED
+        radius_px = None
+        if prior is not None:
+            radius_px = 3.0 * prior.sigma_h_m * self.camera.focal_px / max(alt_m, 1.0) + cfg.inlier_px
+        if radius_px is not None and radius_px <= cfg.max_guided_radius_px:
+            pose = CameraPose(np.array([prior.p_ned_m[0], prior.p_ned_m[1], -alt_m]), R_ned_cam)
+            feat_i, lm_id = self._match_guided(features, cand, pose, radius_px)
+        else:
+            feat_i, lm_id = self._match(features, cand)
+        if len(feat_i) < cfg.min_inliers:
+            return NoFix(t_s, f"{len(feat_i)} descriptor matches", n_correspondences=len(feat_i), n_features=n_feat)
+
+        # One hypothesis per correspondence: the camera's north/east if this feature is this landmark.
+        L = self.map.p_ned_m[lm_id].astype(float)
+        d = rays[feat_i]
+        cam_down = -alt_m
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (L[:, 2] - cam_down) / d[:, 2]
+        ok = np.isfinite(t) & (t > 0.5)
+        feat_i, lm_id, L, d, t = feat_i[ok], lm_id[ok], L[ok], d[ok], t[ok]
+        hyp = L[:, :2] - t[:, None] * d[:, :2]
+        if prior is not None:
+            gate = 3.0 * prior.sigma_h_m + cfg.inlier_px / self.camera.focal_px * alt_m
+            inside = np.linalg.norm(hyp - prior.p_ned_m[:2], axis=1) <= gate
+            feat_i, lm_id, L, d, t, hyp = feat_i[inside], lm_id[inside], L[inside], d[inside], t[inside], hyp[inside]
+        n_corr = len(feat_i)
+        if len(np.unique(feat_i)) < cfg.min_inliers:
+            return NoFix(t_s, f"{n_corr} correspondences inside the search area", n_correspondences=n_corr, n_features=n_feat)
+
+        # Agreement radius of each correspondence on the ground: the pixel tolerance at its range, plus
+        # what a barometer error does to an off-nadir ray.
+        range_m = t * np.linalg.norm(d, axis=1)
+        tan_off = np.linalg.norm(d[:, :2], axis=1) / np.abs(d[:, 2])
+        tau = cfg.inlier_px / self.camera.focal_px * range_m + 2.0 * self.cfg.noise.altitude_m * tan_off
+
+        seeds, support, members = self._consensus(hyp, tau, feat_i, n_feat)
+        best = int(np.argmax(support))
+        best_support = int(support[best])
+        if best_support < cfg.min_inliers:
+            return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
+        # A clearly different position that is nearly as well supported makes the frame ambiguous.
+        far = np.linalg.norm(hyp[seeds] - hyp[seeds[best]], axis=1) > 2.0 * np.maximum(tau[seeds], tau[seeds[best]])
+        if np.any(far) and support[far].max() >= cfg.ambiguity_ratio * best_support:
+            return NoFix(t_s, f"ambiguous: {int(support[far].max())} vs {best_support} supporting features", best_support, n_corr, n_feat)
+
+        inl = self._one_per_feature(members[best], feat_i, np.linalg.norm(hyp - hyp[seeds[best]], axis=1))
+        p0 = np.array([*hyp[seeds[best]], cam_down])
+        p, cov, inl = self._refine(p0, L, d, lm_id, inl, alt_m)
+        n_inl = int(inl.sum())
+        if n_inl < cfg.min_inliers or not np.all(np.isfinite(p)):
+            return NoFix(t_s, f"{n_inl} inliers after refinement", n_inl, n_corr, n_feat)
+        cov = cov + self._common_mode_cov(p, L[inl], alt_m)
+        return Fix(t_s, p, cov, n_inl, n_corr, n_feat)
+
+    # -- steps -------------------------------------------------------------------------------------------------
+
+    def _candidates(self, alt_m: float, prior: PositionPrior | None) -> np.ndarray:
+        cfg = self.cfg.positioning
+        min_seen = self.cfg.mapping.min_seen
+        if prior is None:
+            return self.map.ids_in_box((-np.inf, np.inf), (-np.inf, np.inf), min_seen)
+        reach = max(alt_m, 1.0) * self._footprint_tan + 3.0 * prior.sigma_h_m + cfg.footprint_margin_m
+        n, e = prior.p_ned_m[0], prior.p_ned_m[1]
+        return self.map.ids_in_box((n - reach, n + reach), (e - reach, e + reach), min_seen)
+
+    def _match(self, features: Features, cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each feature to its k nearest landmark descriptors within the Hamming limit: (feature idx, landmark id)."""
+        cfg = self.cfg.positioning
+        k = min(cfg.k_best, len(cand))
+        knn = self._matcher.knnMatch(features.descriptors, self.map.descriptors[cand], k=k)
+        fi, ci = [], []
+        for row in knn:
+            for m in row:
+                if m.distance <= cfg.max_hamming:
+                    fi.append(m.queryIdx)
+                    ci.append(m.trainIdx)
+        return np.array(fi, int), cand[np.array(ci, int)] if ci else np.zeros(0, int)
+
+    def _match_guided(self, features: Features, cand: np.ndarray, pose: CameraPose, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """Every (feature, landmark) pair whose predicted pixel is within ``radius_px`` and whose descriptors agree."""
+        uv, front = pose.project(self.camera, self.map.p_ned_m[cand].astype(float))
+        keep = front & self.camera.in_image(np.nan_to_num(uv, nan=-1e6), -radius_px)
+        cand, uv = cand[keep], uv[keep]
+        if len(cand) == 0:
+            return np.zeros(0, int), np.zeros(0, int)
+        d_px = np.linalg.norm(features.uv_px[:, None, :] - uv[None, :, :], axis=2)
+        fi, ci = np.nonzero(d_px <= radius_px)
+        ok = hamming(features.descriptors[fi], self.map.descriptors[cand[ci]]) <= self.cfg.positioning.max_hamming
+        return fi[ok], cand[ci[ok]]
+
+    def _consensus(self, hyp, tau, feat_i, n_feat) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Seed indices (S,), their support in distinct features (S,), and the (S, K) membership matrix."""
+        cfg = self.cfg.positioning
+        K = len(hyp)
+        # Seeds: every correspondence when few, else an even spread (deterministic).
+        seeds = np.arange(K) if K <= cfg.max_seeds else np.linspace(0, K - 1, cfg.max_seeds).astype(int)
+        dist = np.linalg.norm(hyp[seeds, None, :] - hyp[None, :, :], axis=2)  # (S, K)
+        members = dist <= tau[None, :]
+        hit = np.zeros((len(seeds), n_feat), bool)
+        rows, cols = np.nonzero(members)
+        hit[rows, feat_i[cols]] = True
+        return seeds, hit.sum(axis=1), members
+
+    @staticmethod
+    def _one_per_feature(member_row: np.ndarray, feat_i: np.ndarray, dist: np.ndarray) -> np.ndarray:
+        """Boolean (K,) keeping, per feature, its member correspondence closest to the hypothesis."""
+        keep = np.zeros(len(feat_i), bool)
+        idx = np.flatnonzero(member_row)
+        order = idx[np.argsort(dist[idx])]
+        _, first = np.unique(feat_i[order], return_index=True)
+        keep[order[first]] = True
+        return keep
+
+    def _refine(self, p0, L, d, lm_id, inl, alt_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Weighted least squares for the camera position over the inliers, re-selecting inliers by reprojection."""
+        cfg = self.cfg.positioning
+        noise = self.cfg.noise
+        f = self.camera.focal_px
+        lm_cov = self.map.covariance(lm_id)
+        lm_var = np.trace(lm_cov[:, :2, :2], axis1=1, axis2=2) / 2.0
+        P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+        p = p0
+        cov = np.full((3, 3), np.nan)
+        for _ in range(3):
+            if inl.sum() < 2:
+                break
+            rng = np.linalg.norm(L - p, axis=1)
+            w = 1.0 / ((rng * noise.pixel_px / f) ** 2 + lm_var)
+            A = np.einsum("k,kij->ij", w[inl], P[inl])
+            b = np.einsum("k,kij,kj->i", w[inl], P[inl], L[inl])
+            A[2, 2] += 1.0 / noise.altitude_m**2
+            b[2] += -alt_m / noise.altitude_m**2
+            p = np.linalg.solve(A, b)
+            resid = np.einsum("kij,kj->ki", P, L - p)  # offset of each landmark from its ray, m
+            err_px = np.linalg.norm(resid, axis=1) / np.maximum(rng, 1e-6) * f
+            chi2 = float(np.sum(w[inl] * np.sum(resid[inl] ** 2, axis=1)))
+            dof = max(2 * int(inl.sum()) - 3, 1)
+            cov = np.linalg.inv(A) * max(1.0, chi2 / dof)
+            inl = inl & (err_px <= cfg.inlier_px)
+        return p, cov, inl
+
+    def _common_mode_cov(self, p, L_inl, alt_m) -> np.ndarray:
+        """Error shared by all correspondences: attitude (tilt moves the fix by height x angle) and heading."""
+        noise = self.cfg.noise
+        h = max(alt_m - float(np.mean(-L_inl[:, 2])), 0.0)
+        off = float(np.mean(np.linalg.norm(L_inl[:, :2] - p[:2], axis=1)))
+        var_h = (h * np.deg2rad(noise.attitude_deg)) ** 2 + (off * np.deg2rad(noise.heading_deg)) ** 2
+        return np.diag([var_h, var_h, 0.0])

@@ -1,0 +1,145 @@
+"""Geotagging while GPS is good: features of each frame become, or refine, landmarks of the map.
+
+For every frame: project the landmarks that should be in view with the GPS pose and full attitude, match each
+feature to the nearest-looking landmark among those projecting close to it (guided matching), fuse each match as
+a ray observation, and add the unmatched features as new landmarks placed on the ground plane with a loose
+height. Rays from different places then fix each landmark's height, so a cube's top corner lands on that corner.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from auxgps.core.camera import PinholeCamera
+from auxgps.core.features import Features, hamming
+from auxgps.core.geometry import intersect_rays_with_horizontal_plane
+from auxgps.core.landmarks import LandmarkMap
+from auxgps.core.nav import NavSample
+
+
+@dataclass(frozen=True)
+class MappingResult:
+    """What one frame did to the map. ``landmark_ids`` (N,) gives, per feature, the landmark it fed (-1: none)."""
+
+    n_features: int
+    n_matched: int
+    n_added: int
+    landmark_ids: np.ndarray
+
+
+def ray_information(rays_ned: np.ndarray, sigma_perp_m: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) information of ray observations: (I - d d^T) / sigma_perp^2, 1/m^2."""
+    P = np.eye(3)[None] - rays_ned[:, :, None] * rays_ned[:, None, :]
+    return P / (sigma_perp_m**2)[:, None, None]
+
+
+def ray_mahalanobis2(L: np.ndarray, cov_L: np.ndarray, c: np.ndarray, d: np.ndarray, sigma_perp_m: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis distance (2 dof) of landmarks ``L`` (M, 3) with covariance ``cov_L`` (M, 3, 3) from
+    rays ``c + t d`` (unit ``d`` (M, 3)) with isotropic cross-ray noise ``sigma_perp_m`` (M,)."""
+    helper = np.where(np.abs(d[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
+    e1 = np.cross(d, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(d, e1)
+    E = np.stack([e1, e2], axis=1)  # (M, 2, 3)
+    r = np.einsum("mij,mj->mi", E, L - c)
+    S = np.einsum("mij,mjk,mlk->mil", E, cov_L, E) + (sigma_perp_m**2)[:, None, None] * np.eye(2)[None]
+    return np.einsum("mi,mij,mj->m", r, np.linalg.inv(S), r)
+
+
+class Mapper:
+    """Builds a :class:`LandmarkMap` from frames with known GPS poses."""
+
+    def __init__(self, cfg, camera: PinholeCamera, R_body_cam: np.ndarray, landmarks: LandmarkMap) -> None:
+        self.cfg = cfg
+        self.camera = camera
+        self.R_body_cam = R_body_cam
+        self.map = landmarks
+        noise = cfg.noise
+        self._sigma_att_rad = np.deg2rad(noise.attitude_deg)
+        self._sigma_pos_m = noise.gps_horizontal_m
+        half_diag = np.hypot(camera.width_px, camera.height_px) / 2.0 / camera.focal_px
+        self._footprint_tan = half_diag + 0.5  # room for some tilt
+
+    def process(self, features: Features, nav: NavSample) -> MappingResult:
+        n = len(features)
+        ids_out = np.full(n, -1, int)
+        if n == 0:
+            return MappingResult(0, 0, 0, ids_out)
+        cfg = self.cfg.mapping
+        pose = nav.camera_pose(self.R_body_cam)
+        c = pose.p_cam_in_ned_m
+        rays = pose.rays_ned(self.camera, features.uv_px)
+        # A keypoint found on a coarser pyramid level is located less precisely.
+        sigma_px = self.cfg.noise.pixel_px * self.cfg.detector.scale_factor ** features.octave
+
+        # Candidates: landmarks whose projection falls in the image.
+        reach = max(nav.alt_m, 1.0) * self._footprint_tan + 5.0
+        cand = self.map.ids_in_box((c[0] - reach, c[0] + reach), (c[1] - reach, c[1] + reach))
+        matched_feat = matched_lm = np.zeros(0, int)
+        if len(cand):
+            uv_lm, in_front = pose.project(self.camera, self.map.p_ned_m[cand].astype(float))
+            keep = in_front & self.camera.in_image(np.nan_to_num(uv_lm, nan=-1e6), -cfg.match_radius_px)
+            cand, uv_lm = cand[keep], uv_lm[keep]
+            if len(cand):
+                matched_feat, matched_lm = self._guided_match(features, cand, uv_lm, rays, c, sigma_px)
+
+        # Fuse matches as ray observations.
+        if len(matched_feat):
+            d = rays[matched_feat]
+            rng_m = np.linalg.norm(self.map.p_ned_m[matched_lm].astype(float) - c, axis=1)
+            A = ray_information(d, self._sigma_perp(rng_m, sigma_px[matched_feat]))
+            b = np.einsum("nij,j->ni", A, c)
+            self.map.observe(matched_lm, A, b, features.descriptors[matched_feat], d[:, 2].astype(np.float16))
+            ids_out[matched_feat] = matched_lm
+
+        # Unmatched features become new landmarks on the ground plane, with a loose height prior.
+        new = np.setdiff1d(np.arange(n), matched_feat)
+        p0, valid = intersect_rays_with_horizontal_plane(c, rays[new], 0.0)
+        new, p0 = new[valid], p0[valid]
+        n_added = 0
+        if len(new):
+            rng_m = np.linalg.norm(p0 - c, axis=1)
+            A = ray_information(rays[new], self._sigma_perp(rng_m, sigma_px[new]))
+            A[:, 2, 2] += 1.0 / cfg.initial_height_sigma_m**2
+            ids_out[new] = self.map.add(features.descriptors[new], p0, A, rays[new, 2].astype(np.float16))
+            n_added = len(new)
+        return MappingResult(n, len(matched_feat), n_added, ids_out)
+
+    def _sigma_perp(self, range_m: np.ndarray, sigma_px: np.ndarray) -> np.ndarray:
+        """One-sigma offset of a ray at ``range_m`` across its direction: pixel, attitude and GPS noise, m."""
+        sigma_angle = np.hypot(sigma_px / self.camera.focal_px, self._sigma_att_rad)
+        return np.hypot(range_m * sigma_angle, self._sigma_pos_m)
+
+    def _guided_match(self, features, cand, uv_lm, rays, c, sigma_px) -> tuple[np.ndarray, np.ndarray]:
+        """One-to-one matches (feature indices, landmark ids) within the pixel radius, the descriptor limit and
+        the chi-square gate of the landmark's own uncertainty, best descriptor first."""
+        cfg = self.cfg.mapping
+        d_px = np.linalg.norm(features.uv_px[:, None, :] - uv_lm[None, :, :], axis=2)
+        fi, ci = np.nonzero(d_px <= cfg.match_radius_px)
+        if len(fi) == 0:
+            return np.zeros(0, int), np.zeros(0, int)
+        ham = hamming(features.descriptors[fi], self.map.descriptors[cand[ci]])
+        ok = ham <= cfg.max_hamming
+        fi, ci, ham = fi[ok], ci[ok], ham[ok]
+        if len(fi):
+            lm = cand[ci]
+            L = self.map.p_ned_m[lm].astype(float)
+            sig = self._sigma_perp(np.linalg.norm(L - c, axis=1), sigma_px[fi])
+            ok = ray_mahalanobis2(L, self.map.covariance(lm), c, rays[fi], sig) <= cfg.gate_chi2
+            fi, ci, ham = fi[ok], ci[ok], ham[ok]
+        # Greedy one-to-one assignment by descriptor distance, then pixel distance.
+        order = np.lexsort((d_px[fi, ci], ham))
+        used_f, used_c = set(), set()
+        out_f, out_c = [], []
+        for k in order:
+            f, cc = int(fi[k]), int(ci[k])
+            if f in used_f or cc in used_c:
+                continue
+            used_f.add(f)
+            used_c.add(cc)
+            out_f.append(f)
+            out_c.append(cc)
+        out_f = np.array(out_f, int)
+        return out_f, cand[np.array(out_c, int)]

@@ -1,0 +1,227 @@
+"""Simulated survey flights of a multirotor, and the telemetry an autopilot would report along them.
+
+The vehicle is a point mass whose thrust vector it tilts to accelerate: the attitude follows from the commanded
+acceleration plus drag (so it tilts when it accelerates, brakes, turns or flies into wind), yaw follows the
+survey legs at a limited rate, and gusts push it about. Telemetry is the truth plus configurable white noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import Field
+from pydantic.dataclasses import dataclass as config_dataclass
+
+from auxgps.config import _STRICT, NonNegative, Positive, parse_as, read_yaml
+from auxgps.core.geometry import R_ned_body_from_euler, euler_from_R_ned_body
+from auxgps.sim.render import ImageEffects
+
+GRAVITY_M_S2 = 9.80665
+
+
+@config_dataclass(config=_STRICT, frozen=True)
+class SurveyConfig:
+    """A lawnmower survey over a rectangle of the local frame (metres, NED)."""
+
+    north_min_m: float = -10.0
+    north_max_m: float = 10.0
+    east_min_m: float = -10.0
+    east_max_m: float = 10.0
+    spacing_m: Positive = 2.0
+    legs: Literal["ns", "ew"] = "ns"
+    offset_m: float = 0.0
+    speed_m_s: Positive = 1.0
+
+
+@config_dataclass(config=_STRICT, frozen=True)
+class VehicleConfig:
+    """The multirotor model."""
+
+    max_accel_m_s2: Positive = 1.5
+    velocity_gain_per_s: Positive = 1.5
+    drag_per_s: NonNegative = 0.35
+    gust_sigma_m_s2: NonNegative = 0.25
+    gust_tau_s: Positive = 2.0
+    yaw_rate_deg_s: Positive = 45.0
+    wind_north_m_s: float = 0.0
+    wind_east_m_s: float = 0.0
+    waypoint_radius_m: Positive = 0.2
+
+
+@config_dataclass(config=_STRICT, frozen=True)
+class TelemetryNoiseConfig:
+    """One-sigma white noise added to the truth to make telemetry."""
+
+    gps_horizontal_m: NonNegative = 0.05
+    gps_vertical_m: NonNegative = 0.10
+    altitude_m: NonNegative = 0.05
+    attitude_deg: NonNegative = 0.2
+    heading_deg: NonNegative = 0.2
+
+
+@config_dataclass(config=_STRICT, frozen=True)
+class EffectsConfig:
+    noise_sigma: NonNegative = 0.0
+    blur_sigma_px: NonNegative = 0.0
+    exposure_gain: Positive = 1.0
+
+
+@config_dataclass(config=_STRICT, frozen=True)
+class SimConfig:
+    """How the simulated flights are flown and sensed."""
+
+    mapping: SurveyConfig = Field(default_factory=SurveyConfig)
+    positioning: SurveyConfig = Field(default_factory=lambda: SurveyConfig(legs="ew", offset_m=1.0))
+    vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
+    noise: TelemetryNoiseConfig = Field(default_factory=TelemetryNoiseConfig)
+    effects: EffectsConfig = Field(default_factory=EffectsConfig)
+    dt_s: Annotated[float, Field(gt=0, le=0.1)] = 0.01
+
+    def image_effects(self) -> ImageEffects:
+        return ImageEffects(self.effects.noise_sigma, self.effects.blur_sigma_px, self.effects.exposure_gain)
+
+
+def load_sim_config(path=None) -> SimConfig:
+    return SimConfig() if path is None else parse_as(SimConfig, read_yaml(path), path)
+
+
+def lawnmower_waypoints(survey: SurveyConfig, alt_m: float) -> np.ndarray:
+    """(N, 3) NED waypoints of a lawnmower at ``alt_m`` above the origin: legs, then a step, then back."""
+    if survey.legs == "ns":
+        lo, hi = survey.east_min_m + survey.offset_m, survey.east_max_m
+        along = (survey.north_min_m, survey.north_max_m)
+    else:
+        lo, hi = survey.north_min_m + survey.offset_m, survey.north_max_m
+        along = (survey.east_min_m, survey.east_max_m)
+    lines = np.arange(lo, hi + 1e-9, survey.spacing_m)
+    points = []
+    for i, x in enumerate(lines):
+        a, b = along if i % 2 == 0 else along[::-1]
+        for y in (a, b):
+            points.append((y, x) if survey.legs == "ns" else (x, y))
+    ne = np.array(points, float)
+    return np.column_stack([ne, np.full(len(ne), -alt_m)])
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """The true motion, sampled every ``dt_s``.
+
+    t_s (T,) s; p_ned_m (T, 3) m; v_ned_m_s (T, 3); a_ned_m_s2 (T, 3); euler_rad (T, 3) roll, pitch, yaw.
+    """
+
+    t_s: np.ndarray
+    p_ned_m: np.ndarray
+    v_ned_m_s: np.ndarray
+    a_ned_m_s2: np.ndarray
+    euler_rad: np.ndarray
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t_s[-1])
+
+    def index_at(self, t_s: float) -> int:
+        return int(np.clip(np.rint(t_s / (self.t_s[1] - self.t_s[0])), 0, len(self.t_s) - 1))
+
+    def R_ned_body(self, i: int) -> np.ndarray:
+        return R_ned_body_from_euler(*self.euler_rad[i])
+
+
+def _attitude_from_thrust(f_ned: np.ndarray, yaw_rad: float) -> np.ndarray:
+    """Body -> NED rotation whose -z axis is along the specific thrust ``f_ned`` with heading ``yaw_rad``."""
+    z_b = -f_ned / np.linalg.norm(f_ned)
+    x_c = np.array([np.cos(yaw_rad), np.sin(yaw_rad), 0.0])
+    y_b = np.cross(z_b, x_c)
+    y_b /= np.linalg.norm(y_b)
+    x_b = np.cross(y_b, z_b)
+    return np.column_stack([x_b, y_b, z_b])
+
+
+def fly(waypoints_ned_m: np.ndarray, speed_m_s: float, vehicle: VehicleConfig, rng: np.random.Generator, dt_s: float = 0.01) -> Trajectory:
+    """Fly through ``waypoints_ned_m`` in order, starting at rest at the first one; stop at the last."""
+    wps = np.asarray(waypoints_ned_m, float)
+    p = wps[0].copy()
+    v = np.zeros(3)
+    wind = np.array([vehicle.wind_north_m_s, vehicle.wind_east_m_s, 0.0])
+    gust = np.zeros(3)
+    leg = wps[1] - wps[0] if len(wps) > 1 else np.zeros(3)
+    yaw = float(np.arctan2(leg[1], leg[0]))
+    target = 1
+    brake = 0.6 * vehicle.max_accel_m_s2
+    max_yaw_step = np.deg2rad(vehicle.yaw_rate_deg_s) * dt_s
+    gust_decay = np.exp(-dt_s / vehicle.gust_tau_s)
+    gust_kick = vehicle.gust_sigma_m_s2 * np.sqrt(1 - gust_decay**2)
+    ts, ps, vs, accs, eulers = [], [], [], [], []
+    t = 0.0
+    settled = 0
+    while True:
+        if target < len(wps):
+            d = wps[target] - p
+            dist = np.linalg.norm(d)
+            if dist < vehicle.waypoint_radius_m:
+                target += 1
+                if target < len(wps):
+                    seg = wps[target] - wps[target - 1]
+                    if np.linalg.norm(seg[:2]) >= 5.0:  # turn to face long legs; keep heading on short steps
+                        leg = seg
+                continue
+            v_des = d / dist * min(speed_m_s, np.sqrt(2 * brake * dist))
+        else:
+            d = wps[-1] - p
+            v_des = np.clip(d, -0.5, 0.5)
+            settled += 1
+        a_cmd = vehicle.velocity_gain_per_s * (v_des - v)
+        n_a = np.linalg.norm(a_cmd)
+        if n_a > vehicle.max_accel_m_s2:
+            a_cmd *= vehicle.max_accel_m_s2 / n_a
+        # Thrust provides the commanded acceleration, holds against gravity and cancels the drag it expects.
+        drag = -vehicle.drag_per_s * (v - wind)
+        f_thrust = a_cmd - np.array([0.0, 0.0, GRAVITY_M_S2]) - drag
+        goal = float(np.arctan2(leg[1], leg[0]))
+        dyaw = (goal - yaw + np.pi) % (2 * np.pi) - np.pi
+        yaw += float(np.clip(dyaw, -max_yaw_step, max_yaw_step))
+        R = _attitude_from_thrust(f_thrust, yaw)
+        gust = gust_decay * gust + gust_kick * rng.standard_normal(3) * np.array([1.0, 1.0, 0.3])
+        a = a_cmd + gust
+        ts.append(t)
+        ps.append(p.copy())
+        vs.append(v.copy())
+        accs.append(a.copy())
+        eulers.append(euler_from_R_ned_body(R))
+        if settled > int(1.0 / dt_s):
+            break
+        v = v + a * dt_s
+        p = p + v * dt_s
+        t += dt_s
+    return Trajectory(np.array(ts), np.array(ps), np.array(vs), np.array(accs), np.array(eulers))
+
+
+@dataclass(frozen=True)
+class Telemetry:
+    """What the autopilot reports at one instant. Angles rad, lengths m, NED about the local origin.
+
+    ``p_gps_ned_m`` is the GPS position (None while GPS is denied); ``alt_m`` the barometric height above the
+    origin; ``euler_rad`` the attitude estimate (roll, pitch, yaw).
+    """
+
+    t_s: float
+    p_gps_ned_m: np.ndarray | None
+    alt_m: float
+    euler_rad: np.ndarray
+
+    @property
+    def R_ned_body(self) -> np.ndarray:
+        return R_ned_body_from_euler(*self.euler_rad)
+
+
+def sense(traj: Trajectory, i: int, noise: TelemetryNoiseConfig, rng: np.random.Generator, gps_ok: bool = True) -> Telemetry:
+    """Telemetry at sample ``i``: the truth plus white noise from ``rng``."""
+    p = traj.p_ned_m[i]
+    sig = np.array([noise.gps_horizontal_m, noise.gps_horizontal_m, noise.gps_vertical_m])
+    gps = p + rng.standard_normal(3) * sig
+    alt = -p[2] + noise.altitude_m * rng.standard_normal()
+    att_sig = np.deg2rad([noise.attitude_deg, noise.attitude_deg, noise.heading_deg])
+    euler = traj.euler_rad[i] + rng.standard_normal(3) * att_sig
+    return Telemetry(float(traj.t_s[i]), gps if gps_ok else None, float(alt), euler)
