@@ -123,7 +123,7 @@ def _format_validation_error(path: Path | str, err: ValidationError) -> str:
     for item in err.errors():
         key = ".".join(str(x) for x in item["loc"]) or "(top level)"
         msg = item["msg"]
-        if item["type"] == "extra_forbidden":
+        if item["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
             msg = "unknown key"
         parts.append(f"{key}: {msg}")
     return f"{path}: " + "; ".join(parts)

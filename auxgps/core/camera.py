@@ -60,7 +60,9 @@ class PinholeCamera:
         """(N, 2) pixels -> (N, 2) undistorted normalized image coordinates (x/z, y/z)."""
         uv = np.asarray(uv_px, dtype=float).reshape(-1, 2)
         if self.has_distortion:
-            return cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist).reshape(-1, 2)
+            # OpenCV's default 5 iterations leave pixels of error at the corners of a strongly distorted lens.
+            criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+            return cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist, None, None, None, criteria).reshape(-1, 2)
         Ki = self._K_inv  # type: ignore[attr-defined]
         return np.column_stack([(uv[:, 0] - self.K[0, 2]) * Ki[0, 0], (uv[:, 1] - self.K[1, 2]) * Ki[1, 1]])
 

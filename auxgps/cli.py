@@ -1,0 +1,129 @@
+"""The `auxgps` command. Each subcommand parses its arguments, then calls one function.
+
+Any :class:`AuxGpsError` becomes one line on stderr and exit code 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from tabulate import tabulate
+
+from auxgps.config import load_pipeline_config
+from auxgps.errors import AuxGpsError, ConfigError
+from auxgps.sim.flight import load_sim_config
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+DEMO_WORLD = CONFIG_DIR / "worlds" / "cubes4_0.5m_different.yaml"
+
+
+def _fmt(x, unit="") -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, float):
+        return f"{x:.3f}{unit}"
+    return f"{x}{unit}"
+
+
+def summary_table(summary: dict) -> str:
+    """The on-screen table of one scenario's pooled figures."""
+    lm, fx, ma, ms = summary["landmarks"], summary["fixes"], summary["mission_average"], summary["per_frame_ms"]
+    rows = [
+        ["landmark horizontal error (seen > 10 times)", lm["count"], _fmt(lm["rms_m"]), _fmt(lm["median_m"]), "-", _fmt(lm["max_m"])],
+        ["per-frame fix horizontal error", fx["count"], _fmt(fx["rms_m"]), _fmt(fx["median_m"]), _fmt(fx["p95_m"]), _fmt(fx["max_m"])],
+    ]
+    table = tabulate(rows, headers=["metric (m)", "count", "RMS", "median", "p95", "max"], tablefmt="simple")
+    sc = summary["scenario"]
+    lines = [
+        f"{Path(sc['world']).name} at {sc['altitude_m']:g} m, {sc['runs']} run(s) at {sc['fps']:g} frames/s, seeds {sc['seeds']}",
+        table,
+        f"availability (frames with a whole cube in view that got a fix): {_fmt(fx['availability'])}"
+        f"   fixes over 0.5 m: {fx['over_0_5m']}",
+        f"thesis-style mission averages: landmark {_fmt(ma['landmark_m'], ' m')}, position {_fmt(ma['position_m'], ' m')}",
+        f"time per frame: median {_fmt(ms['median'], ' ms')}, p99 {_fmt(ms['p99'], ' ms')}"
+        f" (features per frame: {summary['features_per_frame_median']:.0f})",
+    ]
+    return "\n".join(lines)
+
+
+def _eval(args) -> int:
+    from auxgps.evaluation.driver import evaluate
+
+    summary = evaluate(
+        args.world,
+        args.altitude,
+        fps=args.fps,
+        runs=args.runs,
+        seed=args.seed,
+        pipeline=load_pipeline_config(args.config),
+        sim=load_sim_config(args.sim_config),
+        workers=args.workers,
+        progress=not args.quiet,
+    )
+    print(summary_table(summary))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(summary, indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _demo(args) -> int:
+    args.world, args.altitude, args.runs = str(DEMO_WORLD), 15.0, 1
+    print("auxgps demo: map a thesis world with GPS, then position from the map without it (simulated).")
+    return _eval(args)
+
+
+def _positive(kind):
+    def parse(text):
+        value = kind(text)
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+        return value
+
+    return parse
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="auxgps", description="A visual back-up GPS for drones.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def add_eval_options(p):
+        p.add_argument("--fps", type=_positive(float), default=2.0, help="camera frames per second (default 2)")
+        p.add_argument("--seed", type=int, default=1, help="seed of the first run (default 1)")
+        p.add_argument("--config", help="pipeline config YAML (default: built-in defaults)")
+        p.add_argument("--sim-config", help="simulation config YAML (default: built-in defaults)")
+        p.add_argument("--json", help="write the figures as JSON to this file")
+        p.add_argument("--workers", type=_positive(int), help="parallel processes (default: one per core)")
+        p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    p = sub.add_parser("eval", help="fly a mapping survey then a positioning flight over a simulated world; score them")
+    p.add_argument("--world", required=True, help="world YAML file (see config/worlds/)")
+    p.add_argument("--altitude", type=_positive(float), required=True, help="survey height above ground, m")
+    p.add_argument("--runs", type=_positive(int), default=1, help="seeded runs (default 1)")
+    add_eval_options(p)
+    p.set_defaults(func=_eval)
+
+    p = sub.add_parser("demo", help="one thesis scenario (4 cubes, 15 m), end to end, with its table")
+    add_eval_options(p)
+    p.set_defaults(func=_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except AuxGpsError as err:
+        print(f"auxgps: error: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("auxgps: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

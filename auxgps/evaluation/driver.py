@@ -1,0 +1,59 @@
+"""Runs seeded evaluation runs of a scenario, in parallel processes, with a progress bar."""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict
+from pathlib import Path
+
+from tqdm import tqdm
+
+from auxgps.config import PipelineConfig
+from auxgps.evaluation.metrics import summarize
+from auxgps.evaluation.scenario import RunRecord, run_once
+from auxgps.sim.flight import SimConfig
+from auxgps.sim.world import load_world
+
+
+def _one(args) -> RunRecord:
+    import cv2
+
+    cv2.setNumThreads(1)
+    world_path, alt_m, fps, seed, pipeline, sim = args
+    return run_once(load_world(world_path), alt_m, fps, seed, pipeline, sim)
+
+
+def evaluate(
+    world_path: Path | str,
+    alt_m: float,
+    *,
+    fps: float,
+    runs: int,
+    seed: int,
+    pipeline: PipelineConfig,
+    sim: SimConfig,
+    workers: int | None = None,
+    progress: bool = True,
+) -> dict:
+    """Fly ``runs`` seeded runs (seeds ``seed`` .. ``seed + runs - 1``) and return the pooled summary."""
+    load_world(world_path)  # fail early, in this process, on a bad world file
+    jobs = [(str(world_path), alt_m, fps, seed + k, pipeline, sim) for k in range(runs)]
+    workers = max(1, min(workers or os.cpu_count() or 1, runs))
+    desc = f"{Path(world_path).stem} @ {alt_m:g} m"
+    if workers == 1:
+        records = [_one(j) for j in tqdm(jobs, desc=desc, unit="run", disable=not progress)]
+    else:
+        with ProcessPoolExecutor(workers) as pool:
+            records = list(tqdm(pool.map(_one, jobs), total=runs, desc=desc, unit="run", disable=not progress))
+    summary = summarize(records)
+    summary["scenario"] = {
+        "world": str(world_path),
+        "altitude_m": alt_m,
+        "fps": fps,
+        "runs": runs,
+        "seeds": [j[3] for j in jobs],
+        "pipeline": asdict(pipeline),
+        "sim": asdict(sim),
+    }
+    return summary

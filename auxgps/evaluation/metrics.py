@@ -1,0 +1,72 @@
+"""Figures of merit from :class:`RunRecord` s: per run and pooled over runs (RMS over all frames, max over all)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from auxgps.evaluation.scenario import RunRecord
+
+
+def _stats(err_m: np.ndarray) -> dict:
+    if len(err_m) == 0:
+        return {"count": 0, "rms_m": None, "median_m": None, "p95_m": None, "max_m": None}
+    return {
+        "count": int(len(err_m)),
+        "rms_m": float(np.sqrt(np.mean(err_m**2))),
+        "median_m": float(np.median(err_m)),
+        "p95_m": float(np.percentile(err_m, 95)),
+        "max_m": float(np.max(err_m)),
+    }
+
+
+def _mean_abs_ne(err_ne: np.ndarray) -> float | None:
+    """The thesis' figure: hypot(mean |north error|, mean |east error|)."""
+    if len(err_ne) == 0:
+        return None
+    return float(np.hypot(*np.mean(np.abs(err_ne), axis=0)))
+
+
+def summarize(records: list[RunRecord]) -> dict:
+    """Pooled figures over ``records``, with each run's own under ``runs``."""
+    pooled = _summarize_pooled(records)
+    if len(records) > 1:
+        pooled["runs"] = [dict(_summarize_pooled([r]), seed=r.seed) for r in records]
+    else:
+        pooled["runs"] = [dict(_summarize_pooled(records), seed=records[0].seed)]
+    return pooled
+
+
+def _summarize_pooled(records: list[RunRecord]) -> dict:
+    lm_ne = np.vstack([r.landmark_err_ne_m for r in records])
+    fix_ne = np.vstack([r.fix_err_ne_m for r in records])
+    lm = _stats(np.linalg.norm(lm_ne, axis=1))
+    fx = _stats(np.linalg.norm(fix_ne, axis=1))
+    n_elig = sum(r.n_eligible_frames for r in records)
+    fx["availability"] = (sum(r.n_eligible_fixed for r in records) / n_elig) if n_elig else None
+    fx["over_0_5m"] = int(np.sum(np.linalg.norm(fix_ne, axis=1) > 0.5))
+    fx["eligible_frames"] = int(n_elig)
+    fx["positioning_frames"] = int(sum(r.n_positioning_frames for r in records))
+    all_ms = np.concatenate([np.concatenate([r.mapping_ms, r.positioning_ms]) for r in records])
+    pos_ms = np.concatenate([r.positioning_ms for r in records])
+    map_ms = np.concatenate([r.mapping_ms for r in records])
+    reasons: dict[str, int] = {}
+    for r in records:
+        for k, v in r.no_fix_reasons.items():
+            reasons[k] = reasons.get(k, 0) + v
+    return {
+        "landmarks": {k: lm[k] for k in ("count", "rms_m", "median_m", "max_m")},
+        "fixes": fx,
+        "mission_average": {
+            "landmark_m": _mean_abs_ne(lm_ne),
+            # The thesis compared the mission's average fix with the average true position.
+            "position_m": float(np.linalg.norm(np.mean(fix_ne, axis=0))) if len(fix_ne) else None,
+        },
+        "per_frame_ms": {
+            "median": float(np.median(all_ms)) if len(all_ms) else None,
+            "p99": float(np.percentile(all_ms, 99)) if len(all_ms) else None,
+            "mapping_median": float(np.median(map_ms)) if len(map_ms) else None,
+            "positioning_median": float(np.median(pos_ms)) if len(pos_ms) else None,
+        },
+        "features_per_frame_median": float(np.median(np.concatenate([r.features_per_frame for r in records]))),
+        "no_fix_reasons": reasons,
+    }

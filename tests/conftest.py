@@ -1,0 +1,28 @@
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from auxgps.config import PipelineConfig, parse_as
+from auxgps.core.camera import PinholeCamera
+from auxgps.sim.world import WorldSpec, world_from_spec
+
+REPO = Path(__file__).resolve().parent.parent
+WORLDS = REPO / "config" / "worlds"
+
+
+@pytest.fixture
+def camera() -> PinholeCamera:
+    return PinholeCamera.from_hfov(1280, 720, np.pi / 2)
+
+
+@pytest.fixture
+def pipeline() -> PipelineConfig:
+    return PipelineConfig()
+
+
+def make_world(cubes, ground=None):
+    data = {"origin": {"lat_deg": 47.0, "lon_deg": 8.0, "alt_amsl_m": 400.0}, "cubes": cubes}
+    if ground is not None:
+        data["ground"] = ground
+    return world_from_spec(parse_as(WorldSpec, data, "test"))
