@@ -61,9 +61,10 @@ class DetectorConfig:
     kind: Literal["orb"] = "orb"
     n_features: Annotated[int, Field(ge=1, le=100000)] = 1000
     fast_threshold: Annotated[int, Field(ge=1, le=255)] = 10
-    n_levels: Annotated[int, Field(ge=1, le=16)] = 3
+    n_levels: Annotated[int, Field(ge=1, le=16)] = 2
     scale_factor: Annotated[float, Field(gt=1.0, le=4.0)] = 1.3
     edge_threshold_px: Annotated[int, Field(ge=1, le=200)] = 16
+    min_harris: float = 0.0  # keypoints at or below this Harris score lie on edges, not corners
 
 
 @dataclass(config=_STRICT, frozen=True)
@@ -85,7 +86,8 @@ class MappingConfig:
     max_hamming: Annotated[int, Field(ge=0, le=256)] = 64
     min_seen: Annotated[int, Field(ge=1)] = 11
     gate_chi2: Positive = 9.21  # 99% for 2 degrees of freedom
-    initial_height_sigma_m: Positive = 20.0
+    max_mean_chi2: Positive = 4.0  # a landmark whose views disagree more (2 expected) is not used to position
+    initial_height_sigma_m: Positive = 3.0  # a new landmark's height prior about the ground plane
 
 
 @dataclass(config=_STRICT, frozen=True)
@@ -93,10 +95,14 @@ class PositioningConfig:
     """Positioning from the map when GPS is lost."""
 
     max_hamming: Annotated[int, Field(ge=0, le=256)] = 64
-    k_best: Annotated[int, Field(ge=1, le=8)] = 3
     inlier_px: Positive = 4.0
     min_inliers: Annotated[int, Field(ge=2)] = 4
     ambiguity_ratio: Annotated[float, Field(gt=0, le=1)] = 0.8
+    # Acquisition, without a usable prior: more descriptor candidates, stronger evidence.
+    k_best_acquire: Annotated[int, Field(ge=1, le=32)] = 8
+    min_inliers_acquire: Annotated[int, Field(ge=2)] = 6
+    ambiguity_ratio_acquire: Annotated[float, Field(gt=0, le=1)] = 0.6
+    min_explained_acquire: Probability = 0.6
     max_seeds: Annotated[int, Field(ge=1)] = 300
     max_guided_radius_px: Positive = 200.0
     max_speed_m_s: Positive = 5.0

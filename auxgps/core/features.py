@@ -32,16 +32,23 @@ class Features:
         return cls(np.zeros((0, 2)), np.zeros((0, DESCRIPTOR_BYTES), np.uint8), np.zeros(0, int))
 
 
-def make_detector(cfg) -> cv2.ORB:
-    """An ORB detector from a :class:`auxgps.config.DetectorConfig`."""
-    return cv2.ORB_create(
-        nfeatures=cfg.n_features,
-        scaleFactor=cfg.scale_factor,
-        nlevels=cfg.n_levels,
-        edgeThreshold=cfg.edge_threshold_px,
-        patchSize=max(cfg.edge_threshold_px, 2),
-        fastThreshold=cfg.fast_threshold,
-    )
+class FeatureDetector:
+    """ORB keypoints and descriptors, as configured by a :class:`auxgps.config.DetectorConfig`."""
+
+    def __init__(self, cfg) -> None:
+        self.cfg = cfg
+        self.orb = cv2.ORB_create(
+            nfeatures=cfg.n_features,
+            scaleFactor=cfg.scale_factor,
+            nlevels=cfg.n_levels,
+            edgeThreshold=cfg.edge_threshold_px,
+            patchSize=max(cfg.edge_threshold_px, 2),
+            fastThreshold=cfg.fast_threshold,
+        )
+
+    def detect(self, image: np.ndarray) -> "Features":
+        return detect(self.orb, image, self.cfg.min_harris)
+
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -57,12 +64,19 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     raise FrameError(f"frame has shape {image.shape}, expected (H, W) or (H, W, 3)")
 
 
-def detect(detector: cv2.ORB, image: np.ndarray) -> Features:
-    """Detect and describe features. An empty or featureless frame gives empty :class:`Features`."""
+def detect(detector: cv2.ORB, image: np.ndarray, min_harris: float = 0.0) -> Features:
+    """Detect and describe point features. An empty or featureless frame gives empty :class:`Features`.
+
+    Keypoints whose Harris score is not above ``min_harris`` are dropped: a negative score marks a point on a
+    straight edge, which slides along the edge from view to view and is no point landmark.
+    """
     gray = to_gray(image)
     if gray.size == 0:
         raise FrameError("frame is empty")
-    keypoints, descriptors = detector.detectAndCompute(gray, None)
+    keypoints = [kp for kp in detector.detect(gray, None) if kp.response > min_harris]
+    if not keypoints:
+        return Features.empty()
+    keypoints, descriptors = detector.compute(gray, keypoints)
     if descriptors is None or not keypoints:
         return Features.empty()
     uv = np.array([kp.pt for kp in keypoints], float)

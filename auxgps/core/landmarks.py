@@ -39,6 +39,7 @@ class LandmarkMap:
         self.info_packed = np.zeros((capacity, 6), np.float32)
         self.n_seen = np.zeros(capacity, np.uint16)
         self.view_cos = np.zeros(capacity, np.float16)
+        self.chi2_mean = np.zeros(capacity, np.float16)
 
     def __len__(self) -> int:
         return self._n
@@ -50,14 +51,14 @@ class LandmarkMap:
         return per * self._n
 
     def _columns(self):
-        return (self.descriptors, self.p_ned_m, self.info_packed, self.n_seen, self.view_cos)
+        return (self.descriptors, self.p_ned_m, self.info_packed, self.n_seen, self.view_cos, self.chi2_mean)
 
     def _grow(self, need: int) -> None:
         cap = len(self.n_seen)
         if need <= cap:
             return
         new_cap = max(need, 2 * cap)
-        for name in ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos"):
+        for name in ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "chi2_mean"):
             old = getattr(self, name)
             new = np.zeros((new_cap,) + old.shape[1:], old.dtype)
             new[: self._n] = old[: self._n]
@@ -73,15 +74,21 @@ class LandmarkMap:
         self.info_packed[ids] = pack_sym(info)
         self.n_seen[ids] = 1
         self.view_cos[ids] = view_cos
+        self.chi2_mean[ids] = 0.0
         self._n += m
         return ids
 
-    def observe(self, ids: np.ndarray, A_obs: np.ndarray, b_obs: np.ndarray, descriptors: np.ndarray, view_cos: np.ndarray) -> None:
+    def observe(
+        self, ids: np.ndarray, A_obs: np.ndarray, b_obs: np.ndarray, descriptors: np.ndarray, view_cos: np.ndarray, chi2: np.ndarray
+    ) -> None:
         """Fuse one observation into each landmark in ``ids`` (unique).
 
         The observation is in information form: ``A_obs`` (M, 3, 3) 1/m^2 and ``b_obs = A_obs @ point`` (M, 3);
-        the landmark keeps the descriptor of its most nadir view.
+        ``chi2`` (M,) is its squared Mahalanobis innovation, averaged into the landmark's consistency. The
+        landmark keeps the descriptor of its most nadir view.
         """
+        n_before = self.n_seen[ids].astype(np.float32)
+        self.chi2_mean[ids] = (self.chi2_mean[ids].astype(np.float32) * (n_before - 1) + chi2) / n_before
         A = unpack_sym(self.info_packed[ids])
         b = np.einsum("nij,nj->ni", A, self.p_ned_m[ids].astype(float)) + b_obs
         A_new = A + A_obs
@@ -96,8 +103,11 @@ class LandmarkMap:
         """(M, 3, 3) position covariance, m^2."""
         return np.linalg.inv(unpack_sym(self.info_packed[ids]))
 
-    def ids_in_box(self, north_range_m: tuple[float, float], east_range_m: tuple[float, float], min_seen: int = 0) -> np.ndarray:
-        """Ids of landmarks inside a north/east box (m) seen at least ``min_seen`` times."""
+    def ids_in_box(
+        self, north_range_m: tuple[float, float], east_range_m: tuple[float, float], min_seen: int = 0, max_chi2: float = np.inf
+    ) -> np.ndarray:
+        """Ids of landmarks inside a north/east box (m), seen at least ``min_seen`` times, whose observations
+        agreed with them (mean squared Mahalanobis innovation at most ``max_chi2``)."""
         p = self.p_ned_m[: self._n]
         mask = (
             (p[:, 0] >= north_range_m[0])
@@ -107,4 +117,6 @@ class LandmarkMap:
         )
         if min_seen > 0:
             mask &= self.n_seen[: self._n] >= min_seen
+        if np.isfinite(max_chi2):
+            mask &= self.chi2_mean[: self._n] <= max_chi2
         return np.flatnonzero(mask)

@@ -86,14 +86,19 @@ class Localiser:
 
         R_ned_cam = R_ned_body @ self.R_body_cam
         rays = self.camera.pixels_to_rays_cam(features.uv_px) @ R_ned_cam.T  # (N, 3) unit, NED
-        radius_px = None
+        radius_px = np.inf
         if prior is not None:
             radius_px = 3.0 * prior.sigma_h_m * self.camera.focal_px / max(alt_m, 1.0) + cfg.inlier_px
-        if radius_px is not None and radius_px <= cfg.max_guided_radius_px:
+        # Tracking (a good prior): candidates are the landmarks predicted near each feature. Acquisition (no
+        # prior or a poor one): candidates come from descriptors alone, and the evidence must be stronger.
+        tracking = radius_px <= cfg.max_guided_radius_px
+        if tracking:
             pose = CameraPose(np.array([prior.p_ned_m[0], prior.p_ned_m[1], -alt_m]), R_ned_cam)
             feat_i, lm_id = self._match_guided(features, cand, pose, radius_px)
+            min_inliers, ratio = cfg.min_inliers, cfg.ambiguity_ratio
         else:
-            feat_i, lm_id = self._match(features, cand)
+            feat_i, lm_id = self._match(features, cand, cfg.k_best_acquire)
+            min_inliers, ratio = cfg.min_inliers_acquire, cfg.ambiguity_ratio_acquire
         if len(feat_i) < cfg.min_inliers:
             return NoFix(t_s, f"{len(feat_i)} descriptor matches", n_correspondences=len(feat_i), n_features=n_feat)
 
@@ -123,19 +128,37 @@ class Localiser:
         seeds, support, members = self._consensus(hyp, tau, feat_i, n_feat)
         best = int(np.argmax(support))
         best_support = int(support[best])
-        if best_support < cfg.min_inliers:
+        if best_support < min_inliers:
             return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
-        # A clearly different position that is nearly as well supported makes the frame ambiguous.
-        far = np.linalg.norm(hyp[seeds] - hyp[seeds[best]], axis=1) > 2.0 * np.maximum(tau[seeds], tau[seeds[best]])
-        if np.any(far) and support[far].max() >= cfg.ambiguity_ratio * best_support:
-            return NoFix(t_s, f"ambiguous: {int(support[far].max())} vs {best_support} supporting features", best_support, n_corr, n_feat)
-
         inl = self._one_per_feature(members[best], feat_i, np.linalg.norm(hyp - hyp[seeds[best]], axis=1))
         p0 = np.array([*hyp[seeds[best]], cam_down])
         p, cov, inl = self._refine(p0, L, d, lm_id, inl, alt_m)
         n_inl = int(inl.sum())
-        if n_inl < cfg.min_inliers or not np.all(np.isfinite(p)):
+        if n_inl < min_inliers or not np.all(np.isfinite(p)):
             return NoFix(t_s, f"{n_inl} inliers after refinement", n_inl, n_corr, n_feat)
+        # Second round without everything the winner explains: a rival position nearly as well supported (the
+        # same features taken for other landmarks, as with a corner matched to the wrong one of identical
+        # cubes) makes the frame ambiguous. Each is scored by its inliers times the share of the landmarks it
+        # puts inside the image that do have a feature there: a wrong position predicts corners on bare ground.
+        share = self._explained_share(p, R_ned_cam, cand, features)
+        score = n_inl * share
+        rest = np.linalg.norm(hyp - p[:2], axis=1) > 2.0 * tau
+        if np.count_nonzero(rest) >= min_inliers:
+            r_seeds, r_support, r_members = self._consensus(hyp[rest], tau[rest], feat_i[rest], n_feat)
+            rb = int(np.argmax(r_support))
+            if r_support[rb] >= min_inliers:
+                h_r = hyp[rest]
+                r_inl = np.zeros(len(hyp), bool)
+                r_inl[np.flatnonzero(rest)] = self._one_per_feature(r_members[rb], feat_i[rest], np.linalg.norm(h_r - h_r[r_seeds[rb]], axis=1))
+                p_r, cov_r, r_inl = self._refine(np.array([*h_r[r_seeds[rb]], cam_down]), L, d, lm_id, r_inl, alt_m)
+                r_score = int(r_inl.sum()) * self._explained_share(p_r, R_ned_cam, cand, features)
+                if r_score > score:
+                    p, cov, inl, score, r_score, share = p_r, cov_r, r_inl, r_score, score, r_score / max(int(r_inl.sum()), 1)
+                    n_inl = int(inl.sum())
+                if r_score >= ratio * score:
+                    return NoFix(t_s, f"ambiguous: rival scores {r_score:.1f} against {score:.1f}", n_inl, n_corr, n_feat)
+        if not tracking and share < cfg.min_explained_acquire:
+            return NoFix(t_s, f"acquisition: {share:.0%} of the landmarks expected in view are seen", n_inl, n_corr, n_feat)
         cov = cov + self._common_mode_cov(p, L[inl], alt_m)
         return Fix(t_s, p, cov, n_inl, n_corr, n_feat)
 
@@ -143,17 +166,17 @@ class Localiser:
 
     def _candidates(self, alt_m: float, prior: PositionPrior | None) -> np.ndarray:
         cfg = self.cfg.positioning
-        min_seen = self.cfg.mapping.min_seen
+        min_seen, max_chi2 = self.cfg.mapping.min_seen, self.cfg.mapping.max_mean_chi2
         if prior is None:
-            return self.map.ids_in_box((-np.inf, np.inf), (-np.inf, np.inf), min_seen)
+            return self.map.ids_in_box((-np.inf, np.inf), (-np.inf, np.inf), min_seen, max_chi2)
         reach = max(alt_m, 1.0) * self._footprint_tan + 3.0 * prior.sigma_h_m + cfg.footprint_margin_m
         n, e = prior.p_ned_m[0], prior.p_ned_m[1]
-        return self.map.ids_in_box((n - reach, n + reach), (e - reach, e + reach), min_seen)
+        return self.map.ids_in_box((n - reach, n + reach), (e - reach, e + reach), min_seen, max_chi2)
 
-    def _match(self, features: Features, cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _match(self, features: Features, cand: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Each feature to its k nearest landmark descriptors within the Hamming limit: (feature idx, landmark id)."""
         cfg = self.cfg.positioning
-        k = min(cfg.k_best, len(cand))
+        k = min(k, len(cand))
         knn = self._matcher.knnMatch(features.descriptors, self.map.descriptors[cand], k=k)
         fi, ci = [], []
         for row in knn:
@@ -162,6 +185,16 @@ class Localiser:
                     fi.append(m.queryIdx)
                     ci.append(m.trainIdx)
         return np.array(fi, int), cand[np.array(ci, int)] if ci else np.zeros(0, int)
+
+    def _explained_share(self, p: np.ndarray, R_ned_cam: np.ndarray, cand: np.ndarray, features: Features) -> float:
+        """Share of the mapped landmarks that ``p`` puts well inside the image which have a feature nearby."""
+        uv, front = CameraPose(p, R_ned_cam).project(self.camera, self.map.p_ned_m[cand].astype(float))
+        margin = 2.0 * self.cfg.positioning.inlier_px
+        inside = front & self.camera.in_image(np.nan_to_num(uv, nan=-1e6), margin)
+        if not np.any(inside):
+            return 0.0
+        d = np.linalg.norm(uv[inside][:, None, :] - features.uv_px[None, :, :], axis=2)
+        return float(np.mean(d.min(axis=1) <= margin))
 
     def _match_guided(self, features: Features, cand: np.ndarray, pose: CameraPose, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
         """Every (feature, landmark) pair whose predicted pixel is within ``radius_px`` and whose descriptors agree."""

@@ -83,7 +83,7 @@ class Mapper:
             keep = in_front & self.camera.in_image(np.nan_to_num(uv_lm, nan=-1e6), -cfg.match_radius_px)
             cand, uv_lm = cand[keep], uv_lm[keep]
             if len(cand):
-                matched_feat, matched_lm = self._guided_match(features, cand, uv_lm, rays, c, sigma_px)
+                matched_feat, matched_lm, chi2 = self._guided_match(features, cand, uv_lm, rays, c, sigma_px)
 
         # Fuse matches as ray observations.
         if len(matched_feat):
@@ -91,7 +91,7 @@ class Mapper:
             rng_m = np.linalg.norm(self.map.p_ned_m[matched_lm].astype(float) - c, axis=1)
             A = ray_information(d, self._sigma_perp(rng_m, sigma_px[matched_feat]))
             b = np.einsum("nij,j->ni", A, c)
-            self.map.observe(matched_lm, A, b, features.descriptors[matched_feat], d[:, 2].astype(np.float16))
+            self.map.observe(matched_lm, A, b, features.descriptors[matched_feat], d[:, 2].astype(np.float16), chi2)
             ids_out[matched_feat] = matched_lm
 
         # Unmatched features become new landmarks on the ground plane, with a loose height prior.
@@ -112,34 +112,63 @@ class Mapper:
         sigma_angle = np.hypot(sigma_px / self.camera.focal_px, self._sigma_att_rad)
         return np.hypot(range_m * sigma_angle, self._sigma_pos_m)
 
-    def _guided_match(self, features, cand, uv_lm, rays, c, sigma_px) -> tuple[np.ndarray, np.ndarray]:
-        """One-to-one matches (feature indices, landmark ids) within the pixel radius, the descriptor limit and
-        the chi-square gate of the landmark's own uncertainty, best descriptor first."""
+    def _guided_match(self, features, cand, uv_lm, rays, c, sigma_px) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One-to-one matches (feature indices, landmark ids, squared Mahalanobis innovations).
+
+        GPS and attitude errors shift every landmark's predicted pixel alike, by a few pixels; corners of a
+        small cube are only a few more apart. So the shift common to the frame is measured first, from the
+        established landmarks, and each landmark is then paired only with a feature close to its shifted
+        prediction (within what its own uncertainty allows), with agreeing descriptors, and inside the
+        chi-square gate.
+        """
         cfg = self.cfg.mapping
-        d_px = np.linalg.norm(features.uv_px[:, None, :] - uv_lm[None, :, :], axis=2)
+        none = np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+        offsets = features.uv_px[:, None, :] - uv_lm[None, :, :]  # (N, C, 2)
+        d_px = np.linalg.norm(offsets, axis=2)
         fi, ci = np.nonzero(d_px <= cfg.match_radius_px)
         if len(fi) == 0:
-            return np.zeros(0, int), np.zeros(0, int)
+            return none
         ham = hamming(features.descriptors[fi], self.map.descriptors[cand[ci]])
         ok = ham <= cfg.max_hamming
         fi, ci, ham = fi[ok], ci[ok], ham[ok]
-        if len(fi):
-            lm = cand[ci]
-            L = self.map.p_ned_m[lm].astype(float)
-            sig = self._sigma_perp(np.linalg.norm(L - c, axis=1), sigma_px[fi])
-            ok = ray_mahalanobis2(L, self.map.covariance(lm), c, rays[fi], sig) <= cfg.gate_chi2
-            fi, ci, ham = fi[ok], ci[ok], ham[ok]
-        # Greedy one-to-one assignment by descriptor distance, then pixel distance.
-        order = np.lexsort((d_px[fi, ci], ham))
+        if len(fi) == 0:
+            return none
+        lm = cand[ci]
+        cov = self.map.covariance(lm)
+        shift = self._common_shift(offsets[fi, ci], self.map.n_seen[lm] >= 3)
+        # Each landmark's own pixel uncertainty: its largest position sigma seen from this range.
+        L = self.map.p_ned_m[lm].astype(float)
+        range_m = np.linalg.norm(L - c, axis=1)
+        sigma_lm_px = np.sqrt(np.linalg.eigvalsh(cov)[:, -1]) / range_m * self.camera.focal_px
+        radius = np.minimum(3.0 * np.hypot(sigma_px[fi] * 2.0, sigma_lm_px), cfg.match_radius_px)
+        d_shifted = np.linalg.norm(offsets[fi, ci] - shift, axis=1)
+        m2 = ray_mahalanobis2(L, cov, c, rays[fi], self._sigma_perp(range_m, sigma_px[fi]))
+        ok = (d_shifted <= radius) & (m2 <= cfg.gate_chi2)
+        fi, ci, ham, m2, d_shifted = fi[ok], ci[ok], ham[ok], m2[ok], d_shifted[ok]
+        # Greedy one-to-one assignment, nearest first, then best descriptor.
+        order = np.lexsort((ham, d_shifted))
         used_f, used_c = set(), set()
-        out_f, out_c = [], []
+        chosen = []
         for k in order:
             f, cc = int(fi[k]), int(ci[k])
             if f in used_f or cc in used_c:
                 continue
             used_f.add(f)
             used_c.add(cc)
-            out_f.append(f)
-            out_c.append(cc)
-        out_f = np.array(out_f, int)
-        return out_f, cand[np.array(out_c, int)]
+            chosen.append(k)
+        if not chosen:
+            return none
+        chosen = np.array(chosen, int)
+        return fi[chosen], cand[ci[chosen]], m2[chosen]
+
+    @staticmethod
+    def _common_shift(offsets_px: np.ndarray, established: np.ndarray, agree_px: float = 2.0) -> np.ndarray:
+        """The pixel shift most established candidate pairs agree on (their mean within ``agree_px``), or zero."""
+        off = offsets_px[established]
+        if len(off) < 3:
+            return np.zeros(2)
+        votes = (np.linalg.norm(off[:, None, :] - off[None, :, :], axis=2) <= agree_px).sum(axis=1)
+        best = int(np.argmax(votes))
+        if votes[best] < 3:
+            return np.zeros(2)
+        return off[np.linalg.norm(off - off[best], axis=1) <= agree_px].mean(axis=0)

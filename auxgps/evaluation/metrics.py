@@ -40,6 +40,7 @@ def _summarize_pooled(records: list[RunRecord]) -> dict:
     lm_ne = np.vstack([r.landmark_err_ne_m for r in records])
     fix_ne = np.vstack([r.fix_err_ne_m for r in records])
     lm = _stats(np.linalg.norm(lm_ne, axis=1))
+    lm_seen = _stats(np.linalg.norm(np.vstack([r.landmark_seen_err_ne_m for r in records]), axis=1))
     fx = _stats(np.linalg.norm(fix_ne, axis=1))
     n_elig = sum(r.n_eligible_frames for r in records)
     fx["availability"] = (sum(r.n_eligible_fixed for r in records) / n_elig) if n_elig else None
@@ -55,6 +56,7 @@ def _summarize_pooled(records: list[RunRecord]) -> dict:
             reasons[k] = reasons.get(k, 0) + v
     return {
         "landmarks": {k: lm[k] for k in ("count", "rms_m", "median_m", "max_m")},
+        "landmarks_seen_over_10": {k: lm_seen[k] for k in ("count", "rms_m", "median_m", "max_m")},
         "fixes": fx,
         "mission_average": {
             "landmark_m": _mean_abs_ne(lm_ne),

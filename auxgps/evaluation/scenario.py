@@ -13,7 +13,7 @@ import numpy as np
 
 from auxgps.config import PipelineConfig
 from auxgps.core.camera import CameraPose, PinholeCamera, camera_from_config
-from auxgps.core.features import detect, make_detector
+from auxgps.core.features import FeatureDetector
 from auxgps.core.geometry import R_body_cam_from_mount
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.localise import Fix, Localiser, PositionPrior
@@ -30,6 +30,7 @@ class RunRecord:
 
     seed: int
     landmark_err_ne_m: np.ndarray  # (L, 2) estimate - truth, landmarks used for positioning
+    landmark_seen_err_ne_m: np.ndarray  # (L', 2) the same for every landmark seen more than 10 times
     fix_err_ne_m: np.ndarray  # (F, 2) fix - truth, every fix of the positioning flight
     fix_sigma_h_m: np.ndarray  # (F,) reported one-sigma
     n_eligible_frames: int  # positioning frames with at least one cube entirely in view (or all, without cubes)
@@ -63,12 +64,16 @@ class FixTracker:
         self.v = None
         self.max_speed = max_speed_m_s
         self.vel_sigma = vel_sigma_m_s
+        self.coast_s = 1.0
 
     def predict(self, t_s: float) -> PositionPrior:
+        """Constant velocity for up to ``coast_s`` after the last fix; beyond, any motion up to the top speed."""
         dt = t_s - self.t
         if self.v is None:
             return PositionPrior(self.p, self.sigma + self.max_speed * dt)
-        return PositionPrior(self.p + self.v * dt, self.sigma + self.vel_sigma * dt)
+        coast = min(dt, self.coast_s)
+        sigma = self.sigma + self.vel_sigma * coast + self.max_speed * (dt - coast)
+        return PositionPrior(self.p + self.v * coast, sigma)
 
     def update(self, fix: Fix) -> None:
         dt = fix.t_s - self.t
@@ -87,7 +92,7 @@ def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: Pipeli
     R_body_cam = R_body_cam_from_mount(*np.deg2rad([m.roll_deg, m.pitch_deg, m.yaw_deg]))
     renderer = Renderer(world, camera)
     effects = sim.image_effects()
-    detector = make_detector(pipeline.detector)
+    detector = FeatureDetector(pipeline.detector)
     landmarks = LandmarkMap()
     mapper = Mapper(pipeline, camera, R_body_cam, landmarks)
     localiser = Localiser(pipeline, camera, R_body_cam, landmarks)
@@ -107,7 +112,7 @@ def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: Pipeli
         tel = sense(traj, i, sim.noise, rng_tel)
         nav = NavSample(tel.t_s, tel.p_gps_ned_m, tel.alt_m, tel.R_ned_body)
         t0 = time.perf_counter()
-        feats = detect(detector, frame.image_bgr)
+        feats = detector.detect(frame.image_bgr)
         result = mapper.process(feats, nav)
         mapping_ms.append((time.perf_counter() - t0) * 1e3)
         fed = np.flatnonzero(result.landmark_ids >= 0)
@@ -116,9 +121,16 @@ def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: Pipeli
         if progress is not None:
             progress()
 
-    used = np.flatnonzero(landmarks.n_seen[: len(landmarks)] >= pipeline.mapping.min_seen)
-    # A landmark's truth is the median of the true points behind the features that fed it.
-    lm_err = np.array([landmarks.p_ned_m[j, :2] - np.median(truths_of[int(j)], axis=0)[:2] for j in used]).reshape(-1, 2)
+    # A landmark's truth is the median of the true points behind the features that fed it. Scored: the
+    # landmarks positioning uses (seen more than 10 times, views consistent), and all seen more than 10 times.
+    n = len(landmarks)
+    seen = np.flatnonzero(landmarks.n_seen[:n] >= pipeline.mapping.min_seen)
+    used = seen[landmarks.chi2_mean[seen] <= pipeline.mapping.max_mean_chi2]
+
+    def lm_errors(ids):
+        return np.array([landmarks.p_ned_m[j, :2] - np.median(truths_of[int(j)], axis=0)[:2] for j in ids]).reshape(-1, 2)
+
+    lm_err, lm_err_seen = lm_errors(used), lm_errors(seen)
 
     # Phase 2: positioning without GPS, on a different flight. GPS is known only at its start.
     fix_err, fix_sigma, pos_ms, n_feat = [], [], [], []
@@ -132,7 +144,7 @@ def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: Pipeli
             tracker = FixTracker(np.array([*tel.p_gps_ned_m[:2], -tel.alt_m]), tel.t_s, pipeline.noise.gps_horizontal_m, pipeline.positioning.max_speed_m_s)
         prior = tracker.predict(tel.t_s)
         t0 = time.perf_counter()
-        feats = detect(detector, frame.image_bgr)
+        feats = detector.detect(frame.image_bgr)
         res = localiser.locate(feats, tel.t_s, tel.R_ned_body, tel.alt_m, prior)
         pos_ms.append((time.perf_counter() - t0) * 1e3)
         n_feat.append(len(feats))
@@ -153,6 +165,7 @@ def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: Pipeli
     return RunRecord(
         seed=seed,
         landmark_err_ne_m=lm_err,
+        landmark_seen_err_ne_m=lm_err_seen,
         fix_err_ne_m=np.array(fix_err).reshape(-1, 2),
         fix_sigma_h_m=np.array(fix_sigma),
         n_eligible_frames=n_elig,
