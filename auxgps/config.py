@@ -87,6 +87,7 @@ class MappingConfig:
     min_seen: Annotated[int, Field(ge=1)] = 11
     gate_chi2: Positive = 9.21  # 99% for 2 degrees of freedom
     max_mean_chi2: Positive = 4.0  # a landmark whose views disagree more (2 expected) is not used to position
+    min_found_ratio: Probability = 0.25  # nor one found in fewer of the frames that should have seen it
     initial_height_sigma_m: Positive = 3.0  # a new landmark's height prior about the ground plane
 
 
@@ -99,7 +100,7 @@ class PositioningConfig:
     min_inliers: Annotated[int, Field(ge=2)] = 4
     ambiguity_ratio: Annotated[float, Field(gt=0, le=1)] = 0.8
     # Acquisition, without a usable prior: more descriptor candidates, stronger evidence.
-    k_best_acquire: Annotated[int, Field(ge=1, le=32)] = 8
+    k_best_acquire: Annotated[int, Field(ge=1, le=256)] = 32
     min_inliers_acquire: Annotated[int, Field(ge=2)] = 6
     ambiguity_ratio_acquire: Annotated[float, Field(gt=0, le=1)] = 0.6
     min_explained_acquire: Probability = 0.6

@@ -40,6 +40,7 @@ class LandmarkMap:
         self.n_seen = np.zeros(capacity, np.uint16)
         self.view_cos = np.zeros(capacity, np.float16)
         self.chi2_mean = np.zeros(capacity, np.float16)
+        self.n_visible = np.zeros(capacity, np.uint16)
 
     def __len__(self) -> int:
         return self._n
@@ -51,14 +52,14 @@ class LandmarkMap:
         return per * self._n
 
     def _columns(self):
-        return (self.descriptors, self.p_ned_m, self.info_packed, self.n_seen, self.view_cos, self.chi2_mean)
+        return (self.descriptors, self.p_ned_m, self.info_packed, self.n_seen, self.view_cos, self.chi2_mean, self.n_visible)
 
     def _grow(self, need: int) -> None:
         cap = len(self.n_seen)
         if need <= cap:
             return
         new_cap = max(need, 2 * cap)
-        for name in ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "chi2_mean"):
+        for name in ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "chi2_mean", "n_visible"):
             old = getattr(self, name)
             new = np.zeros((new_cap,) + old.shape[1:], old.dtype)
             new[: self._n] = old[: self._n]
@@ -75,6 +76,7 @@ class LandmarkMap:
         self.n_seen[ids] = 1
         self.view_cos[ids] = view_cos
         self.chi2_mean[ids] = 0.0
+        self.n_visible[ids] = 1
         self._n += m
         return ids
 
@@ -99,15 +101,26 @@ class LandmarkMap:
         self.descriptors[ids[better]] = descriptors[better]
         self.view_cos[ids[better]] = view_cos[better]
 
+    def count_visible(self, ids: np.ndarray) -> None:
+        """Count one more frame in which these landmarks were predicted inside the image."""
+        self.n_visible[ids] = np.minimum(self.n_visible[ids].astype(np.int32) + 1, np.iinfo(np.uint16).max)
+
+    def usable(self, ids: np.ndarray, min_seen: int, max_chi2: float, min_found_ratio: float) -> np.ndarray:
+        """(M,) bool: seen at least ``min_seen`` times, in at least ``min_found_ratio`` of the frames that should
+        have seen it, with views that agree (mean squared Mahalanobis innovation at most ``max_chi2``)."""
+        n_seen = self.n_seen[ids].astype(np.int32)
+        return (
+            (n_seen >= min_seen)
+            & (self.chi2_mean[ids] <= max_chi2)
+            & (n_seen >= min_found_ratio * self.n_visible[ids].astype(np.int32))
+        )
+
     def covariance(self, ids: np.ndarray) -> np.ndarray:
         """(M, 3, 3) position covariance, m^2."""
         return np.linalg.inv(unpack_sym(self.info_packed[ids]))
 
-    def ids_in_box(
-        self, north_range_m: tuple[float, float], east_range_m: tuple[float, float], min_seen: int = 0, max_chi2: float = np.inf
-    ) -> np.ndarray:
-        """Ids of landmarks inside a north/east box (m), seen at least ``min_seen`` times, whose observations
-        agreed with them (mean squared Mahalanobis innovation at most ``max_chi2``)."""
+    def ids_in_box(self, north_range_m: tuple[float, float], east_range_m: tuple[float, float]) -> np.ndarray:
+        """Ids of landmarks inside a north/east box (m)."""
         p = self.p_ned_m[: self._n]
         mask = (
             (p[:, 0] >= north_range_m[0])
@@ -115,8 +128,4 @@ class LandmarkMap:
             & (p[:, 1] >= east_range_m[0])
             & (p[:, 1] <= east_range_m[1])
         )
-        if min_seen > 0:
-            mask &= self.n_seen[: self._n] >= min_seen
-        if np.isfinite(max_chi2):
-            mask &= self.chi2_mean[: self._n] <= max_chi2
         return np.flatnonzero(mask)

@@ -143,10 +143,10 @@ class Localiser:
         share = self._explained_share(p, R_ned_cam, cand, features)
         score = n_inl * share
         rest = np.linalg.norm(hyp - p[:2], axis=1) > 2.0 * tau
-        if np.count_nonzero(rest) >= min_inliers:
+        if np.count_nonzero(rest) >= 2:
             r_seeds, r_support, r_members = self._consensus(hyp[rest], tau[rest], feat_i[rest], n_feat)
             rb = int(np.argmax(r_support))
-            if r_support[rb] >= min_inliers:
+            if r_support[rb] >= max(2.0, ratio * best_support):
                 h_r = hyp[rest]
                 r_inl = np.zeros(len(hyp), bool)
                 r_inl[np.flatnonzero(rest)] = self._one_per_feature(r_members[rb], feat_i[rest], np.linalg.norm(h_r - h_r[r_seeds[rb]], axis=1))
@@ -165,25 +165,30 @@ class Localiser:
     # -- steps -------------------------------------------------------------------------------------------------
 
     def _candidates(self, alt_m: float, prior: PositionPrior | None) -> np.ndarray:
+        """Usable landmarks within reach of the prior's footprint (all usable ones without a prior)."""
         cfg = self.cfg.positioning
-        min_seen, max_chi2 = self.cfg.mapping.min_seen, self.cfg.mapping.max_mean_chi2
+        m = self.cfg.mapping
         if prior is None:
-            return self.map.ids_in_box((-np.inf, np.inf), (-np.inf, np.inf), min_seen, max_chi2)
-        reach = max(alt_m, 1.0) * self._footprint_tan + 3.0 * prior.sigma_h_m + cfg.footprint_margin_m
-        n, e = prior.p_ned_m[0], prior.p_ned_m[1]
-        return self.map.ids_in_box((n - reach, n + reach), (e - reach, e + reach), min_seen, max_chi2)
+            ids = np.arange(len(self.map))
+        else:
+            reach = max(alt_m, 1.0) * self._footprint_tan + 3.0 * prior.sigma_h_m + cfg.footprint_margin_m
+            n, e = prior.p_ned_m[0], prior.p_ned_m[1]
+            ids = self.map.ids_in_box((n - reach, n + reach), (e - reach, e + reach))
+        return ids[self.map.usable(ids, m.min_seen, m.max_mean_chi2, m.min_found_ratio)]
 
     def _match(self, features: Features, cand: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Each feature to its k nearest landmark descriptors within the Hamming limit: (feature idx, landmark id)."""
+        """Each feature to every landmark within the Hamming limit, the ``k`` nearest at most.
+
+        Not just the nearest few: with identical objects in the map, every copy must get its correspondences,
+        or the copy that happens to win the descriptor lottery wins the position too.
+        """
         cfg = self.cfg.positioning
-        k = min(k, len(cand))
-        knn = self._matcher.knnMatch(features.descriptors, self.map.descriptors[cand], k=k)
+        rows = self._matcher.radiusMatch(features.descriptors, self.map.descriptors[cand], float(cfg.max_hamming) + 0.5)
         fi, ci = [], []
-        for row in knn:
-            for m in row:
-                if m.distance <= cfg.max_hamming:
-                    fi.append(m.queryIdx)
-                    ci.append(m.trainIdx)
+        for row in rows:
+            for m in row[:k]:
+                fi.append(m.queryIdx)
+                ci.append(m.trainIdx)
         return np.array(fi, int), cand[np.array(ci, int)] if ci else np.zeros(0, int)
 
     def _explained_share(self, p: np.ndarray, R_ned_cam: np.ndarray, cand: np.ndarray, features: Features) -> float:

@@ -82,6 +82,7 @@ class Mapper:
             uv_lm, in_front = pose.project(self.camera, self.map.p_ned_m[cand].astype(float))
             keep = in_front & self.camera.in_image(np.nan_to_num(uv_lm, nan=-1e6), -cfg.match_radius_px)
             cand, uv_lm = cand[keep], uv_lm[keep]
+            self.map.count_visible(cand[self.camera.in_image(uv_lm)])
             if len(cand):
                 matched_feat, matched_lm, chi2 = self._guided_match(features, cand, uv_lm, rays, c, sigma_px)
 

@@ -125,7 +125,8 @@ def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: Pipeli
     # landmarks positioning uses (seen more than 10 times, views consistent), and all seen more than 10 times.
     n = len(landmarks)
     seen = np.flatnonzero(landmarks.n_seen[:n] >= pipeline.mapping.min_seen)
-    used = seen[landmarks.chi2_mean[seen] <= pipeline.mapping.max_mean_chi2]
+    m = pipeline.mapping
+    used = seen[landmarks.usable(seen, m.min_seen, m.max_mean_chi2, m.min_found_ratio)]
 
     def lm_errors(ids):
         return np.array([landmarks.p_ned_m[j, :2] - np.median(truths_of[int(j)], axis=0)[:2] for j in ids]).reshape(-1, 2)

@@ -1,0 +1,107 @@
+#!/usr/bin/env python3
+"""Reproduce the thesis' Tables 5.1 to 5.12 as Markdown: our figures beside the thesis' own, every run seeded.
+
+    .venv/bin/python tools/thesis_tables.py --runs 3 --fps 2 --out docs/thesis_tables.md [--json-dir out/tables]
+
+For each table cell the scenario is flown ``--runs`` times (seeds 1..runs) with `auxgps eval`'s code. Beside the
+thesis' mission-average figure ("pos diff") stand our thesis-style mission average and our per-frame figures
+(RMS and p95 for fixes, RMS for landmarks), which are the ones that matter to a flight.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from tabulate import tabulate
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from auxgps.config import load_pipeline_config  # noqa: E402
+from auxgps.evaluation.driver import evaluate  # noqa: E402
+from auxgps.sim.flight import load_sim_config  # noqa: E402
+
+WORLDS = REPO / "config" / "worlds"
+
+# The thesis' "pos diff" figures (m), Tables 5.1 to 5.12.
+THESIS = {
+    "5.1": ("Landmarks, 1 cube, 10 m", "landmarks", 10, {"one_cube_0.5m": 0.357467, "one_cube_1m": 0.533571, "one_cube_2m": 0.812517, "one_cube_3m": 0.767836}),
+    "5.2": ("Landmarks, 1 cube, 15 m", "landmarks", 15, {"one_cube_0.5m": 0.517039, "one_cube_1m": 0.663830, "one_cube_2m": 0.897618, "one_cube_3m": 1.118386}),
+    "5.3": ("Landmarks, 0.5 m cubes, different colours, 15 m", "landmarks", 15, {"one_cube_0.5m": 0.517039, "cubes2_0.5m_different": 0.448138, "cubes3_0.5m_different": 0.446128, "cubes4_0.5m_different": 0.423266}),
+    "5.4": ("Landmarks, 3 m cubes, different colours, 15 m", "landmarks", 15, {"one_cube_3m": 1.118386, "cubes2_3m_different": 1.093504, "cubes3_3m_different": 1.084063, "cubes4_3m_different": 1.035909}),
+    "5.5": ("Landmarks, 0.5 m cubes, same colour, 15 m", "landmarks", 15, {"one_cube_0.5m": 0.517039, "cubes2_0.5m_same": 0.587596, "cubes3_0.5m_same": 0.466489, "cubes4_0.5m_same": 0.503672}),
+    "5.6": ("Landmarks, 3 m cubes, same colour, 15 m", "landmarks", 15, {"one_cube_3m": 1.118386, "cubes2_3m_same": 1.084439, "cubes3_3m_same": 1.308481, "cubes4_3m_same": 1.095536}),
+    "5.7": ("Positioning, 1 cube, 10 m", "fixes", 10, {"one_cube_0.5m": 0.125899, "one_cube_1m": 0.148648, "one_cube_2m": 0.247540, "one_cube_3m": 0.188650}),
+    "5.8": ("Positioning, 1 cube, 15 m", "fixes", 15, {"one_cube_0.5m": 0.105738, "one_cube_1m": 0.108836, "one_cube_2m": 0.139050, "one_cube_3m": 0.144485}),
+    "5.9": ("Positioning, 0.5 m cubes, different colours, 15 m", "fixes", 15, {"one_cube_0.5m": 0.105738, "cubes2_0.5m_different": 0.120947, "cubes3_0.5m_different": 0.145937, "cubes4_0.5m_different": 0.150056}),
+    "5.10": ("Positioning, 3 m cubes, different colours, 15 m", "fixes", 15, {"one_cube_3m": 0.144485, "cubes2_3m_different": 0.158658, "cubes3_3m_different": 0.164317, "cubes4_3m_different": 0.125324}),
+    "5.11": ("Positioning, 0.5 m cubes, same colour, 15 m", "fixes", 15, {"one_cube_0.5m": 0.105738, "cubes2_0.5m_same": 0.100799, "cubes3_0.5m_same": 0.134497, "cubes4_0.5m_same": 0.116887}),
+    "5.12": ("Positioning, 3 m cubes, same colour, 15 m", "fixes", 15, {"one_cube_3m": 0.144485, "cubes2_3m_same": 0.117912, "cubes3_3m_same": 0.070480, "cubes4_3m_same": 0.179884}),
+}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--fps", type=float, default=2.0)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--out", default="docs/thesis_tables.md")
+    ap.add_argument("--json-dir", default="out/tables")
+    ap.add_argument("--config")
+    ap.add_argument("--sim-config")
+    args = ap.parse_args(argv)
+    pipeline, sim = load_pipeline_config(args.config), load_sim_config(args.sim_config)
+    json_dir = Path(args.json_dir)
+    json_dir.mkdir(parents=True, exist_ok=True)
+    cache: dict[tuple[str, int], dict] = {}
+
+    def summary(world: str, alt: int) -> dict:
+        key = (world, alt)
+        if key not in cache:
+            path = json_dir / f"{world}_{alt}m.json"
+            cache[key] = evaluate(WORLDS / f"{world}.yaml", float(alt), fps=args.fps, runs=args.runs, seed=args.seed, pipeline=pipeline, sim=sim)
+            path.write_text(json.dumps(cache[key], indent=2))
+        return cache[key]
+
+    lines = [
+        "# The thesis' Tables 5.1 to 5.12, and ours",
+        "",
+        f"Each scenario flown {args.runs} times (seeds {args.seed} to {args.seed + args.runs - 1}) at {args.fps:g} frames/s, "
+        "with `tools/thesis_tables.py`. The thesis reported one figure per table cell, a mission average ('pos diff'); "
+        "we give the same figure computed the same way, and the per-frame figures that a flight depends on.",
+        "",
+    ]
+    for number, (title, kind, alt, cells) in THESIS.items():
+        rows = []
+        for world, thesis in cells.items():
+            s = summary(world, alt)
+            ma = s["mission_average"]["landmark_m" if kind == "landmarks" else "position_m"]
+            if kind == "landmarks":
+                lm = s["landmarks"]
+                rows.append([world, f"{thesis:.3f}", _f(ma), _f(lm["rms_m"]), _f(lm["max_m"]), lm["count"]])
+            else:
+                fx = s["fixes"]
+                rows.append([world, f"{thesis:.3f}", _f(ma), _f(fx["rms_m"]), _f(fx["p95_m"]), _f(fx["max_m"]), _f(fx["availability"])])
+        headers = (
+            ["world", "thesis (m)", "ours, same figure (m)", "ours RMS (m)", "ours max (m)", "landmarks"]
+            if kind == "landmarks"
+            else ["world", "thesis (m)", "ours, same figure (m)", "ours per-frame RMS (m)", "p95 (m)", "max (m)", "availability"]
+        )
+        lines += [f"## Table {number}: {title}", "", tabulate(rows, headers=headers, tablefmt="github"), ""]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines))
+    print("\n".join(lines))
+    print(f"wrote {out}")
+    return 0
+
+
+def _f(x) -> str:
+    return "-" if x is None else f"{x:.3f}"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
