@@ -111,6 +111,22 @@ class PositioningConfig:
 
 
 @dataclass(config=_STRICT, frozen=True)
+class FusionConfig:
+    """The navigation filter that fuses visual fixes with the IMU."""
+
+    accel_noise_m_s2_sqrt_hz: Positive = 0.02
+    accel_bias_sigma_m_s2: Positive = 0.2
+    accel_bias_walk_m_s2_sqrt_s: Positive = 0.002
+    gate_chi2: Positive = 9.21  # 99% for the 2 degrees of freedom of a horizontal fix
+    history_s: Annotated[float, Field(gt=0, le=5)] = 0.5
+    reinit_count: Annotated[int, Field(ge=2)] = 5
+    reinit_window_s: Positive = 3.0
+    reinit_speed_sigma_m_s: Positive = 0.5
+    max_specific_force_m_s2: Positive = 160.0  # 16 g: what a flight controller's accelerometer can report
+    output_rate_hz: Annotated[float, Field(gt=0, le=100)] = 10.0
+
+
+@dataclass(config=_STRICT, frozen=True)
 class PipelineConfig:
     """Everything the estimator needs: camera, mount, detector, noise model, mapping and positioning."""
 
@@ -120,6 +136,7 @@ class PipelineConfig:
     noise: NoiseModelConfig = Field(default_factory=NoiseModelConfig)
     mapping: MappingConfig = Field(default_factory=MappingConfig)
     positioning: PositioningConfig = Field(default_factory=PositioningConfig)
+    fusion: FusionConfig = Field(default_factory=FusionConfig)
 
 
 T = TypeVar("T")

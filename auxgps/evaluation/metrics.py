@@ -26,6 +26,25 @@ def _mean_abs_ne(err_ne: np.ndarray) -> float | None:
     return float(np.hypot(*np.mean(np.abs(err_ne), axis=0)))
 
 
+def _fused(records: list[RunRecord]) -> dict:
+    """The filter's output while denied: horizontal error, and its consistency with the reported covariance."""
+    err = np.vstack([r.fused_err_ne_m for r in records])
+    cov = np.concatenate([r.fused_cov_ne_m2 for r in records])
+    if len(err) == 0:
+        return {"count": 0, "rms_m": None, "p95_m": None, "max_m": None, "nees_mean": None, "within_3sigma": None}
+    e = np.linalg.norm(err, axis=1)
+    nees = np.einsum("ni,nij,nj->n", err, np.linalg.inv(cov), err)  # 2 degrees of freedom: 2 expected
+    sigma_worst = np.sqrt(np.linalg.eigvalsh(cov)[:, -1])  # the horizontal accuracy auxgps reports
+    return {
+        "count": int(len(e)),
+        "rms_m": float(np.sqrt(np.mean(e**2))),
+        "p95_m": float(np.percentile(e, 95)),
+        "max_m": float(e.max()),
+        "nees_mean": float(np.mean(nees)),
+        "within_3sigma": float(np.mean(e <= 3.0 * sigma_worst)),
+    }
+
+
 def summarize(records: list[RunRecord]) -> dict:
     """Pooled figures over ``records``, with each run's own under ``runs``."""
     pooled = _summarize_pooled(records)
@@ -50,6 +69,8 @@ def _summarize_pooled(records: list[RunRecord]) -> dict:
     all_ms = np.concatenate([np.concatenate([r.mapping_ms, r.positioning_ms]) for r in records])
     pos_ms = np.concatenate([r.positioning_ms for r in records])
     map_ms = np.concatenate([r.mapping_ms for r in records])
+    fused = _fused(records)
+    gated = np.concatenate([r.fix_gated for r in records])
     reasons: dict[str, int] = {}
     for r in records:
         for k, v in r.no_fix_reasons.items():
@@ -63,6 +84,13 @@ def _summarize_pooled(records: list[RunRecord]) -> dict:
             # The thesis compared the mission's average fix with the average true position.
             "position_m": float(np.linalg.norm(np.mean(fix_ne, axis=0))) if len(fix_ne) else None,
         },
+        "fused": fused,
+        "gate": {
+            "rejected": int(gated.sum()),
+            "accepted_over_0_5m": int(np.sum(~gated & (np.linalg.norm(fix_ne, axis=1) > 0.5))),
+            "reinitialisations": int(sum(r.n_reinit for r in records)),
+        },
+        "denied_s": float(np.mean([r.denied_s for r in records])),
         "per_frame_ms": {
             "median": float(np.median(all_ms)) if len(all_ms) else None,
             "p99": float(np.percentile(all_ms, 99)) if len(all_ms) else None,

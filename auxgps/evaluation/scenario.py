@@ -16,26 +16,36 @@ from auxgps.core.camera import CameraPose, PinholeCamera, camera_from_config
 from auxgps.core.features import FeatureDetector
 from auxgps.core.geometry import R_body_cam_from_mount
 from auxgps.core.landmarks import LandmarkMap
-from auxgps.core.localise import Fix, Localiser, PositionPrior
+from auxgps.core.localise import Fix, Localiser
 from auxgps.core.mapping import Mapper
 from auxgps.core.nav import NavSample
-from auxgps.sim.flight import SimConfig, fly, lawnmower_waypoints, sense
+from auxgps.core.fusion import ImuSample, NavFilter
+from auxgps.core.geometry import R_ned_body_from_euler
+from auxgps.sim.flight import SimConfig, fly, imu_bias, lawnmower_waypoints, sense, sense_imu
 from auxgps.sim.render import Renderer
 from auxgps.sim.world import World
 
 
 @dataclass
 class RunRecord:
-    """Raw per-landmark and per-frame results of one run (all errors horizontal, m; times ms)."""
+    """Raw results of one run (errors horizontal unless said, m; times ms). Positioning figures cover the
+    GPS-denied part of the positioning flight only."""
 
     seed: int
     landmark_err_ne_m: np.ndarray  # (L, 2) estimate - truth, landmarks used for positioning
     landmark_seen_err_ne_m: np.ndarray  # (L', 2) the same for every landmark seen more than 10 times
-    fix_err_ne_m: np.ndarray  # (F, 2) fix - truth, every fix of the positioning flight
+    fix_err_ne_m: np.ndarray  # (F, 2) fix - truth, every fix while denied
     fix_sigma_h_m: np.ndarray  # (F,) reported one-sigma
-    n_eligible_frames: int  # positioning frames with at least one cube entirely in view (or all, without cubes)
+    fix_gated: np.ndarray  # (F,) bool, rejected by the filter's gate
+    n_eligible_frames: int  # denied frames with at least one cube entirely in view (or all, without cubes)
     n_eligible_fixed: int
     n_positioning_frames: int
+    fused_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (O,) output times while denied
+    fused_err_ne_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    fused_cov_ne_m2: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    denied_s: float = 0.0
+    n_reinit: int = 0
+    n_bad_imu: int = 0
     mapping_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     positioning_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     features_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -52,116 +62,138 @@ def _cube_fully_in_view(world: World, camera: PinholeCamera, pose: CameraPose) -
     return False
 
 
-class FixTracker:
-    """Predicts where the next frame will be from the last fixes (constant velocity), to narrow the search.
-
-    A stand-in for the navigation filter of the fusion stage, so that positioning is scored frame by frame.
-    Until two fixes give a velocity, the uncertainty grows at ``max_speed_m_s``; then at ``vel_sigma_m_s``.
-    """
-
-    def __init__(self, p_ned_m, t_s, sigma_h_m, max_speed_m_s, vel_sigma_m_s: float = 0.5):
-        self.p, self.t, self.sigma = np.asarray(p_ned_m, float), t_s, sigma_h_m
-        self.v = None
-        self.max_speed = max_speed_m_s
-        self.vel_sigma = vel_sigma_m_s
-        self.coast_s = 1.0
-
-    def predict(self, t_s: float) -> PositionPrior:
-        """Constant velocity for up to ``coast_s`` after the last fix; beyond, any motion up to the top speed."""
-        dt = t_s - self.t
-        if self.v is None:
-            return PositionPrior(self.p, self.sigma + self.max_speed * dt)
-        coast = min(dt, self.coast_s)
-        sigma = self.sigma + self.vel_sigma * coast + self.max_speed * (dt - coast)
-        return PositionPrior(self.p + self.v * coast, sigma)
-
-    def update(self, fix: Fix) -> None:
-        dt = fix.t_s - self.t
-        v = (fix.p_ned_m - self.p) / dt if dt > 0 else None
-        if v is not None and np.linalg.norm(v[:2]) <= self.max_speed:
-            self.v = v if self.v is None else 0.5 * (self.v + v)
-        self.p, self.t, self.sigma = fix.p_ned_m, fix.t_s, fix.sigma_h_m
+def _reason_key(reason: str) -> str:
+    """Group no-fix reasons without their numbers."""
+    return reason.split(":")[0] if ":" in reason else " ".join(w for w in reason.split() if not w[0].isdigit())
 
 
-def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: PipelineConfig, sim: SimConfig, progress=None) -> RunRecord:
-    """Fly the mapping survey, then the positioning flight, over ``world`` at ``alt_m``; score both."""
-    seq = np.random.SeedSequence(seed)
-    rng_fly_map, rng_fly_pos, rng_tel, rng_img = (np.random.default_rng(s) for s in seq.spawn(4))
-    camera = camera_from_config(pipeline.camera)
-    m = pipeline.mount
-    R_body_cam = R_body_cam_from_mount(*np.deg2rad([m.roll_deg, m.pitch_deg, m.yaw_deg]))
-    renderer = Renderer(world, camera)
-    effects = sim.image_effects()
-    detector = FeatureDetector(pipeline.detector)
-    landmarks = LandmarkMap()
-    mapper = Mapper(pipeline, camera, R_body_cam, landmarks)
-    localiser = Localiser(pipeline, camera, R_body_cam, landmarks)
+class _Setup:
+    """Everything one run builds once: camera, renderer, detector, map and the estimator's parts."""
 
-    def frames(survey, rng_fly):
-        traj = fly(lawnmower_waypoints(survey, alt_m), survey.speed_m_s, sim.vehicle, rng_fly, sim.dt_s)
-        for t in np.arange(0.0, traj.duration_s, 1.0 / fps):
-            i = traj.index_at(t)
-            true_pose = CameraPose(traj.p_ned_m[i].copy(), traj.R_ned_body(i) @ R_body_cam)
-            frame = renderer.render(true_pose, effects, rng_img)
-            yield traj, i, frame
+    def __init__(self, world: World, pipeline: PipelineConfig, sim: SimConfig, seed: int) -> None:
+        seq = np.random.SeedSequence(seed)
+        self.rng_fly_map, self.rng_fly_pos, self.rng_tel, self.rng_img, self.rng_imu = (np.random.default_rng(s) for s in seq.spawn(5))
+        self.world, self.pipeline, self.sim = world, pipeline, sim
+        self.camera = camera_from_config(pipeline.camera)
+        m = pipeline.mount
+        self.R_body_cam = R_body_cam_from_mount(*np.deg2rad([m.roll_deg, m.pitch_deg, m.yaw_deg]))
+        self.renderer = Renderer(world, self.camera)
+        self.effects = sim.image_effects()
+        self.detector = FeatureDetector(pipeline.detector)
+        self.landmarks = LandmarkMap()
+        self.mapper = Mapper(pipeline, self.camera, self.R_body_cam, self.landmarks)
+        self.localiser = Localiser(pipeline, self.camera, self.R_body_cam, self.landmarks)
 
-    # Phase 1: mapping with GPS.
+    def render(self, traj, i):
+        pose = CameraPose(traj.p_ned_m[i].copy(), traj.R_ned_body(i) @ self.R_body_cam)
+        return self.renderer.render(pose, self.effects, self.rng_img)
+
+
+def _map_flight(su: _Setup, alt_m: float, fps: float, progress) -> tuple[np.ndarray, np.ndarray, list]:
+    """Phase 1: the mapping survey with GPS. Returns landmark errors (used, seen > 10) and frame times."""
+    sim, pipeline = su.sim, su.pipeline
+    traj = fly(lawnmower_waypoints(sim.mapping, alt_m), sim.mapping.speed_m_s, sim.vehicle, su.rng_fly_map, sim.dt_s)
     truths_of: dict[int, list[np.ndarray]] = {}
     mapping_ms = []
-    for traj, i, frame in frames(sim.mapping, rng_fly_map):
-        tel = sense(traj, i, sim.noise, rng_tel)
+    for t in np.arange(0.0, traj.duration_s, 1.0 / fps):
+        i = traj.index_at(t)
+        frame = su.render(traj, i)
+        tel = sense(traj, i, sim.noise, su.rng_tel)
         nav = NavSample(tel.t_s, tel.p_gps_ned_m, tel.alt_m, tel.R_ned_body)
         t0 = time.perf_counter()
-        feats = detector.detect(frame.image_bgr)
-        result = mapper.process(feats, nav)
+        feats = su.detector.detect(frame.image_bgr)
+        result = su.mapper.process(feats, nav)
         mapping_ms.append((time.perf_counter() - t0) * 1e3)
         fed = np.flatnonzero(result.landmark_ids >= 0)
         for lid, p in zip(result.landmark_ids[fed], frame.true_points_at(feats.uv_px[fed])):
             truths_of.setdefault(int(lid), []).append(p)
         if progress is not None:
             progress()
-
     # A landmark's truth is the median of the true points behind the features that fed it. Scored: the
     # landmarks positioning uses (seen more than 10 times, views consistent), and all seen more than 10 times.
-    n = len(landmarks)
-    seen = np.flatnonzero(landmarks.n_seen[:n] >= pipeline.mapping.min_seen)
+    lm = su.landmarks
     m = pipeline.mapping
-    used = seen[landmarks.usable(seen, m.min_seen, m.max_mean_chi2, m.min_found_ratio)]
+    seen = np.flatnonzero(lm.n_seen[: len(lm)] >= m.min_seen)
+    used = seen[lm.usable(seen, m.min_seen, m.max_mean_chi2, m.min_found_ratio)]
 
-    def lm_errors(ids):
-        return np.array([landmarks.p_ned_m[j, :2] - np.median(truths_of[int(j)], axis=0)[:2] for j in ids]).reshape(-1, 2)
+    def errors(ids):
+        return np.array([lm.p_ned_m[j, :2] - np.median(truths_of[int(j)], axis=0)[:2] for j in ids]).reshape(-1, 2)
 
-    lm_err, lm_err_seen = lm_errors(used), lm_errors(seen)
+    return errors(used), errors(seen), mapping_ms
 
-    # Phase 2: positioning without GPS, on a different flight. GPS is known only at its start.
-    fix_err, fix_sigma, pos_ms, n_feat = [], [], [], []
+
+def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: PipelineConfig, sim: SimConfig, progress=None) -> RunRecord:
+    """Fly the mapping survey, then the positioning flight, over ``world`` at ``alt_m``; score both.
+
+    The positioning flight has GPS for its first ``sim.denial.gps_until_s`` seconds, then none. The filter is
+    driven by the IMU at its rate, the barometer and (while it lasts) GPS; every frame is located against the
+    map with the filter's prediction as the search prior, and its fix reaches the filter ``fix_latency_s`` after
+    the frame was captured. Only this function sees the truth, to score.
+    """
+    su = _Setup(world, pipeline, sim, seed)
+    lm_err, lm_err_seen, mapping_ms = _map_flight(su, alt_m, fps, progress)
+
+    traj = fly(lawnmower_waypoints(sim.positioning, alt_m), sim.positioning.speed_m_s, sim.vehicle, su.rng_fly_pos, sim.dt_s)
+    noise, den = sim.noise, sim.denial
+    dt = traj.t_s[1] - traj.t_s[0]
+    every = lambda rate_hz: max(1, int(round(1.0 / (rate_hz * dt))))  # noqa: E731
+    imu_every, baro_every, gps_every = every(noise.imu_rate_hz), every(noise.baro_rate_hz), every(noise.gps_rate_hz)
+    frame_every, out_every = every(fps), every(pipeline.fusion.output_rate_hz)
+    bias = imu_bias(noise, su.rng_imu)
+    nav = NavFilter(pipeline.fusion, 0.0, traj.p_ned_m[0] + su.rng_tel.standard_normal(3) * noise.gps_horizontal_m, np.zeros(3), noise.gps_horizontal_m * 2, 0.1)
+
+    pending: list[tuple[float, Fix, int]] = []  # (delivery time, fix, its index in fix_err)
+    fix_err, fix_sigma, fix_gated, pos_ms, n_feat = [], [], [], [], []
+    fused_t, fused_err, fused_cov = [], [], []
     reasons: dict[str, int] = {}
-    prior = None
-    tracker = None
     n_elig = n_elig_fixed = n_frames = 0
-    for traj, i, frame in frames(sim.positioning, rng_fly_pos):
-        tel = sense(traj, i, sim.noise, rng_tel, gps_ok=(n_frames == 0))
-        if tracker is None:
-            tracker = FixTracker(np.array([*tel.p_gps_ned_m[:2], -tel.alt_m]), tel.t_s, pipeline.noise.gps_horizontal_m, pipeline.positioning.max_speed_m_s)
-        prior = tracker.predict(tel.t_s)
-        t0 = time.perf_counter()
-        feats = detector.detect(frame.image_bgr)
-        res = localiser.locate(feats, tel.t_s, tel.R_ned_body, tel.alt_m, prior)
-        pos_ms.append((time.perf_counter() - t0) * 1e3)
-        n_feat.append(len(feats))
-        eligible = _cube_fully_in_view(world, camera, frame.pose)
-        n_frames += 1
-        n_elig += eligible
-        if isinstance(res, Fix):
-            n_elig_fixed += eligible
-            fix_err.append(res.p_ned_m[:2] - traj.p_ned_m[i, :2])
-            fix_sigma.append(res.sigma_h_m)
-            tracker.update(res)
-        else:
-            key = res.reason.split(":")[0] if res.reason.startswith("ambiguous") else res.reason.split(" ", 1)[-1]
-            reasons[key] = reasons.get(key, 0) + 1
-        if progress is not None:
-            progress()
+    blackout = (den.blackout_start_s, (den.blackout_start_s or 0.0) + den.blackout_duration_s)
+    for i in range(len(traj.t_s)):
+        t = float(traj.t_s[i])
+        denied = t >= den.gps_until_s
+        if i % imu_every == 0:
+            t_imu, f_body, euler = sense_imu(traj, i, noise, bias, su.rng_imu)
+            nav.propagate(ImuSample(t_imu, f_body, R_ned_body_from_euler(*euler)))
+        if i % baro_every == 0:
+            nav.update_altitude(t, -traj.p_ned_m[i, 2] + noise.altitude_m * su.rng_tel.standard_normal(), pipeline.noise.altitude_m)
+        if not denied and i % gps_every == 0:
+            gps = traj.p_ned_m[i, :2] + su.rng_tel.standard_normal(2) * noise.gps_horizontal_m
+            nav.update_position(t, gps, np.eye(2) * pipeline.noise.gps_horizontal_m**2)
+        while pending and pending[0][0] <= t:
+            _, fix, k = pending.pop(0)
+            decision = nav.update_position(fix.t_s, fix.p_ned_m[:2], fix.cov_ned_m2[:2, :2])
+            fix_gated[k] = not decision.accepted
+        if i % frame_every == 0 and denied:
+            tel = sense(traj, i, noise, su.rng_tel, gps_ok=False)
+            frame = su.render(traj, i)
+            image = frame.image_bgr
+            if blackout[0] is not None and blackout[0] <= t < blackout[1]:
+                image = np.zeros_like(image)  # the camera is blinded
+            t0 = time.perf_counter()
+            feats = su.detector.detect(image)
+            res = su.localiser.locate(feats, t, tel.R_ned_body, tel.alt_m, nav.prior(t))
+            pos_ms.append((time.perf_counter() - t0) * 1e3)
+            n_feat.append(len(feats))
+            eligible = _cube_fully_in_view(world, su.camera, frame.pose) and image is frame.image_bgr
+            n_frames += 1
+            n_elig += eligible
+            if isinstance(res, Fix):
+                n_elig_fixed += eligible
+                err = res.p_ned_m[:2] - traj.p_ned_m[i, :2]
+                fix_err.append(err)
+                fix_sigma.append(res.sigma_h_m)
+                fix_gated.append(False)
+                pending.append((t + den.fix_latency_s, res, len(fix_err) - 1))
+            else:
+                key = _reason_key(res.reason)
+                reasons[key] = reasons.get(key, 0) + 1
+            if progress is not None:
+                progress()
+        if i % out_every == 0 and denied:
+            est = nav.estimate()
+            fused_t.append(t)
+            fused_err.append(est.p_ned_m[:2] - traj.p_ned_m[i, :2])
+            fused_cov.append(est.cov_p_m2[:2, :2])
 
     return RunRecord(
         seed=seed,
@@ -169,9 +201,16 @@ def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: Pipeli
         landmark_seen_err_ne_m=lm_err_seen,
         fix_err_ne_m=np.array(fix_err).reshape(-1, 2),
         fix_sigma_h_m=np.array(fix_sigma),
+        fix_gated=np.array(fix_gated, bool),
         n_eligible_frames=n_elig,
         n_eligible_fixed=n_elig_fixed,
         n_positioning_frames=n_frames,
+        fused_t_s=np.array(fused_t),
+        fused_err_ne_m=np.array(fused_err).reshape(-1, 2),
+        fused_cov_ne_m2=np.array(fused_cov).reshape(-1, 2, 2),
+        denied_s=float(traj.duration_s - den.gps_until_s),
+        n_reinit=nav.n_reinit,
+        n_bad_imu=nav.n_bad_imu,
         mapping_ms=np.array(mapping_ms),
         positioning_ms=np.array(pos_ms),
         features_per_frame=np.array(n_feat),

@@ -59,6 +59,11 @@ class TelemetryNoiseConfig:
     altitude_m: NonNegative = 0.05
     attitude_deg: NonNegative = 0.2
     heading_deg: NonNegative = 0.2
+    accel_noise_m_s2: NonNegative = 0.1  # per IMU sample
+    accel_bias_m_s2: NonNegative = 0.1  # one sigma of the constant bias drawn per run, per axis (body)
+    imu_rate_hz: Annotated[float, Field(ge=50, le=1000)] = 100.0
+    baro_rate_hz: Positive = 10.0
+    gps_rate_hz: Positive = 5.0
 
 
 @config_dataclass(config=_STRICT, frozen=True)
@@ -66,6 +71,16 @@ class EffectsConfig:
     noise_sigma: NonNegative = 0.0
     blur_sigma_px: NonNegative = 0.0
     exposure_gain: Positive = 1.0
+
+
+@config_dataclass(config=_STRICT, frozen=True)
+class DenialConfig:
+    """When the positioning flight loses GPS, and an optional camera blackout during the denial."""
+
+    gps_until_s: NonNegative = 10.0
+    blackout_start_s: float | None = None
+    blackout_duration_s: NonNegative = 0.0
+    fix_latency_s: Annotated[float, Field(ge=0, le=0.25)] = 0.1  # capture to fix, on top of nothing else
 
 
 @config_dataclass(config=_STRICT, frozen=True)
@@ -77,6 +92,7 @@ class SimConfig:
     vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
     noise: TelemetryNoiseConfig = Field(default_factory=TelemetryNoiseConfig)
     effects: EffectsConfig = Field(default_factory=EffectsConfig)
+    denial: DenialConfig = Field(default_factory=DenialConfig)
     dt_s: Annotated[float, Field(gt=0, le=0.1)] = 0.01
 
     def image_effects(self) -> ImageEffects:
@@ -225,3 +241,21 @@ def sense(traj: Trajectory, i: int, noise: TelemetryNoiseConfig, rng: np.random.
     att_sig = np.deg2rad([noise.attitude_deg, noise.attitude_deg, noise.heading_deg])
     euler = traj.euler_rad[i] + rng.standard_normal(3) * att_sig
     return Telemetry(float(traj.t_s[i]), gps if gps_ok else None, float(alt), euler)
+
+
+def imu_bias(noise: TelemetryNoiseConfig, rng: np.random.Generator) -> np.ndarray:
+    """A constant accelerometer bias for one run, body frame, m/s^2."""
+    return rng.standard_normal(3) * noise.accel_bias_m_s2
+
+
+def sense_imu(traj: Trajectory, i: int, noise: TelemetryNoiseConfig, bias_body_m_s2: np.ndarray, rng: np.random.Generator):
+    """IMU sample at trajectory sample ``i``: specific force (body, with bias and noise) and noisy attitude.
+
+    Returns ``(t_s, f_body_m_s2, euler_rad)``. The specific force is the acceleration that carries the vehicle
+    from sample ``i`` to ``i + 1``, less gravity, in the true body frame.
+    """
+    R = traj.R_ned_body(i)
+    f_true = R.T @ (traj.a_ned_m_s2[i] - np.array([0.0, 0.0, GRAVITY_M_S2]))
+    f = f_true + bias_body_m_s2 + rng.standard_normal(3) * noise.accel_noise_m_s2
+    att_sig = np.deg2rad([noise.attitude_deg, noise.attitude_deg, noise.heading_deg])
+    return float(traj.t_s[i]), f, traj.euler_rad[i] + rng.standard_normal(3) * att_sig

@@ -1,0 +1,252 @@
+"""Fusion of visual fixes with the autopilot's IMU and attitude: an extended Kalman filter on filterpy.
+
+State (9): position NED (m), velocity NED (m/s), accelerometer bias in the body frame (m/s^2). Between fixes the
+filter is driven by the IMU: specific force minus the bias, rotated by the attitude, plus gravity. The bias is
+estimated because a tenth of a m/s^2 left in the specific force, integrated over a few seconds without a fix,
+is metres; it is observable from the fixes as soon as the vehicle turns.
+
+Fixes are stamped with their frame's capture time and may arrive late: the filter keeps a short history of its
+states and IMU inputs, rolls back to the capture time, applies the fix and replays the inputs since. Each fix is
+gated on its innovation (squared Mahalanobis distance against a chi-square threshold); when the gate keeps
+rejecting a run of fixes that agree with each other, the filter itself has drifted and is re-initialised on them.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+
+from auxgps.core.localise import PositionPrior
+
+log = logging.getLogger(__name__)
+
+GRAVITY_NED_M_S2 = np.array([0.0, 0.0, 9.80665])
+_H_NE = np.hstack([np.eye(2), np.zeros((2, 7))])
+_H_D = np.zeros((1, 9))
+_H_D[0, 2] = 1.0
+
+
+@dataclass(frozen=True)
+class ImuSample:
+    """One IMU sample: capture time (s), specific force in the body frame (m/s^2), attitude (body -> NED)."""
+
+    t_s: float
+    f_body_m_s2: np.ndarray
+    R_ned_body: np.ndarray
+
+
+@dataclass(frozen=True)
+class FusedEstimate:
+    """The filter's output at ``t_s``: position (m), velocity (m/s) and their covariances, NED."""
+
+    t_s: float
+    p_ned_m: np.ndarray
+    v_ned_m_s: np.ndarray
+    cov_p_m2: np.ndarray
+    cov_v_m2_s2: np.ndarray
+
+    @property
+    def sigma_h_m(self) -> float:
+        """Horizontal one-sigma along the worst axis, m (what GPS_INPUT's horiz_accuracy should say)."""
+        return float(np.sqrt(np.linalg.eigvalsh(self.cov_p_m2[:2, :2])[-1]))
+
+    @property
+    def sigma_v_m(self) -> float:
+        return float(np.sqrt(self.cov_p_m2[2, 2]))
+
+    @property
+    def sigma_speed_m_s(self) -> float:
+        return float(np.sqrt(np.linalg.eigvalsh(self.cov_v_m2_s2)[-1]))
+
+
+@dataclass(frozen=True)
+class GateDecision:
+    """What the filter did with one fix. ``mahalanobis2`` is the squared distance of its innovation."""
+
+    t_s: float
+    accepted: bool
+    mahalanobis2: float
+    reason: str
+
+
+class NavFilter:
+    """Position, velocity and accelerometer-bias EKF. ``cfg`` is a :class:`auxgps.config.FusionConfig`."""
+
+    def __init__(self, cfg, t_s: float, p_ned_m: np.ndarray, v_ned_m_s: np.ndarray, sigma_p_m: float, sigma_v_m_s: float) -> None:
+        self.cfg = cfg
+        self._ekf = ExtendedKalmanFilter(dim_x=9, dim_z=2)
+        self._ekf.x = np.concatenate([p_ned_m, v_ned_m_s, np.zeros(3)]).reshape(9, 1).astype(float)
+        self._ekf.P = np.diag([sigma_p_m**2] * 3 + [sigma_v_m_s**2] * 3 + [cfg.accel_bias_sigma_m_s2**2] * 3)
+        self.t_s = float(t_s)
+        self._history: deque = deque()  # (t_s, x, P, imu) after each propagation
+        self._rejected_run: list[tuple[float, np.ndarray, np.ndarray]] = []
+        self.n_accepted = 0
+        self.n_rejected = 0
+        self.n_reinit = 0
+        self.n_bad_imu = 0
+        self._last_imu_t = -np.inf
+
+    # -- inputs --------------------------------------------------------------------------------------------
+
+    def propagate(self, imu: ImuSample) -> bool:
+        """Advance to ``imu.t_s`` with this sample. A NaN, out-of-range or out-of-order sample is refused."""
+        problem = self._check_imu(imu)
+        if problem:
+            self.n_bad_imu += 1
+            log.warning("IMU sample at t=%.3f s rejected: %s", imu.t_s, problem)
+            return False
+        self._last_imu_t = imu.t_s
+        self._predict(imu)
+        self._history.append((self.t_s, self._ekf.x.copy(), self._ekf.P.copy(), imu))
+        while self._history and self._history[0][0] < self.t_s - self.cfg.history_s:
+            self._history.popleft()
+        return True
+
+    def update_position(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray) -> GateDecision:
+        """Fuse a horizontal position fix captured at ``t_s`` (up to ``history_s`` ago)."""
+        p_ne_m = np.asarray(p_ne_m, float).reshape(2)
+        cov_ne_m2 = np.asarray(cov_ne_m2, float).reshape(2, 2)
+        if not (np.all(np.isfinite(p_ne_m)) and np.all(np.isfinite(cov_ne_m2))):
+            return self._decide(GateDecision(t_s, False, np.nan, "fix is not finite"))
+        replay = self._rewind(t_s)
+        if replay is None:
+            return self._decide(GateDecision(t_s, False, np.nan, f"fix {self.t_s - t_s:.3f} s old, older than the history"))
+        S = _H_NE @ self._ekf.P @ _H_NE.T + cov_ne_m2
+        y = p_ne_m - self._ekf.x[:2, 0]
+        m2 = float(y @ np.linalg.solve(S, y))
+        if m2 <= self.cfg.gate_chi2:
+            self._ekf.update(p_ne_m.reshape(2, 1), lambda x: _H_NE, lambda x: x[:2], R=cov_ne_m2)
+            self._rejected_run.clear()
+            decision = GateDecision(t_s, True, m2, "accepted")
+        else:
+            decision = GateDecision(t_s, False, m2, f"innovation {np.sqrt(m2):.1f} sigma")
+            self._rejected_run.append((t_s, p_ne_m, cov_ne_m2))
+            if self._rejected_run_agrees():
+                self._reinitialise(t_s, p_ne_m, cov_ne_m2)
+                decision = GateDecision(t_s, False, m2, "re-initialised on a run of consistent rejected fixes")
+        self._replay(replay)
+        return self._decide(decision)
+
+    def update_altitude(self, t_s: float, alt_m: float, sigma_m: float) -> bool:
+        """Fuse a barometric height above the origin (m), applied at the current time."""
+        if not (np.isfinite(alt_m) and np.isfinite(sigma_m) and sigma_m > 0):
+            log.warning("altitude sample at t=%.3f s rejected: not finite", t_s)
+            return False
+        z = np.array([[-alt_m]])
+        self._ekf.update(z, lambda x: _H_D, lambda x: x[2:3], R=np.array([[sigma_m**2]]))
+        return True
+
+    # -- outputs -------------------------------------------------------------------------------------------
+
+    def estimate(self) -> FusedEstimate:
+        x, P = self._ekf.x[:, 0], self._ekf.P
+        return FusedEstimate(self.t_s, x[:3].copy(), x[3:6].copy(), P[:3, :3].copy(), P[3:6, 3:6].copy())
+
+    def prior(self, t_s: float | None = None) -> PositionPrior:
+        """Where the next frame should be, for the localiser's search (propagated to ``t_s`` by velocity)."""
+        est = self.estimate()
+        dt = 0.0 if t_s is None else max(t_s - est.t_s, 0.0)
+        p = est.p_ned_m + est.v_ned_m_s * dt
+        return PositionPrior(p, est.sigma_h_m + est.sigma_speed_m_s * dt)
+
+    @property
+    def accel_bias_body_m_s2(self) -> np.ndarray:
+        return self._ekf.x[6:9, 0].copy()
+
+    # -- internals -----------------------------------------------------------------------------------------
+
+    def _check_imu(self, imu: ImuSample) -> str:
+        f = np.asarray(imu.f_body_m_s2, float)
+        R = np.asarray(imu.R_ned_body, float)
+        if not np.isfinite(imu.t_s) or imu.t_s <= self._last_imu_t:
+            return f"time {imu.t_s} is not after the previous sample's {self._last_imu_t}"
+        if f.shape != (3,) or not np.all(np.isfinite(f)):
+            return "specific force is not 3 finite numbers"
+        if np.linalg.norm(f) > self.cfg.max_specific_force_m_s2:
+            return f"specific force {np.linalg.norm(f):.1f} m/s^2 is out of range"
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)) or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
+            return "attitude is not a finite rotation"
+        return ""
+
+    def _predict(self, imu: ImuSample) -> None:
+        dt = imu.t_s - self.t_s
+        if dt <= 0:
+            return
+        cfg = self.cfg
+        R = imu.R_ned_body
+        I3 = np.eye(3)
+        F = np.eye(9)
+        F[0:3, 3:6] = I3 * dt
+        F[0:3, 6:9] = -0.5 * R * dt * dt
+        F[3:6, 6:9] = -R * dt
+        B = np.vstack([0.5 * I3 * dt * dt, I3 * dt, np.zeros((3, 3))])
+        u = (R @ imu.f_body_m_s2 + GRAVITY_NED_M_S2).reshape(3, 1)
+        q = cfg.accel_noise_m_s2_sqrt_hz**2  # white acceleration noise, continuous-time
+        Q = np.zeros((9, 9))
+        Q[0:3, 0:3] = I3 * q * dt**3 / 3.0
+        Q[0:3, 3:6] = Q[3:6, 0:3] = I3 * q * dt**2 / 2.0
+        Q[3:6, 3:6] = I3 * q * dt
+        Q[6:9, 6:9] = I3 * cfg.accel_bias_walk_m_s2_sqrt_s**2 * dt
+        self._ekf.F, self._ekf.B, self._ekf.Q = F, B, Q
+        self._ekf.predict(u)
+        self.t_s = imu.t_s
+
+    def _rewind(self, t_s: float) -> list | None:
+        """Restore the state at ``t_s`` (the last sample not after it); return the IMU samples to replay."""
+        if t_s >= self.t_s:
+            return []
+        hist = self._history
+        if not hist or t_s < hist[0][0]:
+            return None
+        k = max(i for i, h in enumerate(hist) if h[0] <= t_s)
+        t_k, x_k, P_k, _ = hist[k]
+        replay = [h[3] for h in list(hist)[k + 1 :]]
+        for _ in range(len(hist) - k - 1):
+            hist.pop()
+        self._ekf.x, self._ekf.P, self.t_s = x_k.copy(), P_k.copy(), t_k
+        return replay
+
+    def _replay(self, samples: list) -> None:
+        for imu in samples:
+            self._predict(imu)
+            self._history.append((self.t_s, self._ekf.x.copy(), self._ekf.P.copy(), imu))
+
+    def _rejected_run_agrees(self) -> bool:
+        """True when the last ``reinit_count`` rejected fixes, within ``reinit_window_s``, agree with each other
+        after the filter's own velocity is taken out: the filter, not the fixes, is what is wrong."""
+        cfg = self.cfg
+        run = [r for r in self._rejected_run if r[0] >= self._rejected_run[-1][0] - cfg.reinit_window_s]
+        self._rejected_run[:] = run
+        if len(run) < cfg.reinit_count:
+            return False
+        v = self._ekf.x[3:5, 0]
+        t_last, p_last, c_last = run[-1]
+        for t, p, c in run[:-1]:
+            d = (p + v * (t_last - t)) - p_last
+            S = c + c_last + np.eye(2) * (cfg.reinit_speed_sigma_m_s * (t_last - t)) ** 2
+            if d @ np.linalg.solve(S, d) > cfg.gate_chi2:
+                return False
+        return True
+
+    def _reinitialise(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray) -> None:
+        x, P = self._ekf.x, self._ekf.P
+        x[0:2, 0] = p_ne_m
+        P[0:2, :] = 0.0
+        P[:, 0:2] = 0.0
+        P[0:2, 0:2] = cov_ne_m2
+        P[3:5, 3:5] += np.eye(2) * self.cfg.reinit_speed_sigma_m_s**2
+        self._rejected_run.clear()
+        self.n_reinit += 1
+        log.warning("filter re-initialised at t=%.3f s on %d consistent rejected fixes", t_s, self.cfg.reinit_count)
+
+    def _decide(self, d: GateDecision) -> GateDecision:
+        if d.accepted:
+            self.n_accepted += 1
+        else:
+            self.n_rejected += 1
+            log.info("fix at t=%.3f s rejected: %s (squared Mahalanobis %.1f)", d.t_s, d.reason, d.mahalanobis2)
+        return d
