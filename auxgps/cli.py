@@ -35,6 +35,8 @@ def summary_table(summary: dict) -> str:
         ["landmark horizontal error (seen > 10 times)", lm["count"], _fmt(lm["rms_m"]), _fmt(lm["median_m"]), "-", _fmt(lm["max_m"])],
         ["per-frame fix horizontal error", fx["count"], _fmt(fx["rms_m"]), _fmt(fx["median_m"]), _fmt(fx["p95_m"]), _fmt(fx["max_m"])],
     ]
+    fu = summary["fused"]
+    rows.append(["fused output (10 Hz) while GPS-denied", fu["count"], _fmt(fu["rms_m"]), "-", _fmt(fu["p95_m"]), _fmt(fu["max_m"])])
     table = tabulate(rows, headers=["metric (m)", "count", "RMS", "median", "p95", "max"], tablefmt="simple")
     sc = summary["scenario"]
     lines = [
@@ -42,10 +44,21 @@ def summary_table(summary: dict) -> str:
         table,
         f"availability (frames with a whole cube in view that got a fix): {_fmt(fx['availability'])}"
         f"   fixes over 0.5 m: {fx['over_0_5m']}",
+        f"filter: NEES {_fmt(fu['nees_mean'])} (2 expected), true error inside the reported 3 sigma "
+        f"{_fmt(fu['within_3sigma'])}; fixes gated {summary['gate']['rejected']}, accepted over 0.5 m "
+        f"{summary['gate']['accepted_over_0_5m']}, re-initialisations {summary['gate']['reinitialisations']}; "
+        f"GPS-denied {summary['denied_s']:.0f} s",
         f"thesis-style mission averages: landmark {_fmt(ma['landmark_m'], ' m')}, position {_fmt(ma['position_m'], ' m')}",
         f"time per frame: median {_fmt(ms['median'], ' ms')}, p99 {_fmt(ms['p99'], ' ms')}"
         f" (features per frame: {summary['features_per_frame_median']:.0f})",
     ]
+    if summary.get("blackout"):
+        b = summary["blackout"]
+        lines.append(
+            f"camera blackout: {b['outputs_during']} outputs during it, reported accuracy {_fmt(b['sigma_before_m'])} m"
+            f" before, {_fmt(b['sigma_at_end_m'])} m at its end; true error at its end {_fmt(b['error_at_end_m'])} m;"
+            f" recovered {_fmt(b['recovery_s'])} s after"
+        )
     return "\n".join(lines)
 
 

@@ -65,6 +65,7 @@ class DetectorConfig:
     scale_factor: Annotated[float, Field(gt=1.0, le=4.0)] = 1.3
     edge_threshold_px: Annotated[int, Field(ge=1, le=200)] = 16
     min_harris: float = 0.0  # keypoints at or below this Harris score lie on edges, not corners
+    subpixel_window_px: Annotated[int, Field(ge=0, le=15)] = 2  # half-size of the corner refinement window; 0: off
 
 
 @dataclass(config=_STRICT, frozen=True)
@@ -106,6 +107,8 @@ class PositioningConfig:
     min_explained_acquire: Probability = 0.6
     max_seeds: Annotated[int, Field(ge=1)] = 300
     max_guided_radius_px: Positive = 200.0
+    min_search_radius_m: NonNegative = 1.0
+    prior_rival_ratio: Annotated[float, Field(gt=0, le=1)] = 0.5
     max_speed_m_s: Positive = 5.0
     footprint_margin_m: NonNegative = 2.0
 
@@ -116,7 +119,7 @@ class FusionConfig:
 
     accel_noise_m_s2_sqrt_hz: Positive = 0.02
     accel_bias_sigma_m_s2: Positive = 0.2
-    accel_bias_walk_m_s2_sqrt_s: Positive = 0.002
+    accel_bias_walk_m_s2_sqrt_s: NonNegative = 0.002
     gate_chi2: Positive = 9.21  # 99% for the 2 degrees of freedom of a horizontal fix
     history_s: Annotated[float, Field(gt=0, le=5)] = 0.5
     reinit_count: Annotated[int, Field(ge=2)] = 5

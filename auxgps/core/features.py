@@ -47,7 +47,10 @@ class FeatureDetector:
         )
 
     def detect(self, image: np.ndarray) -> "Features":
-        return detect(self.orb, image, self.cfg.min_harris)
+        feats = detect(self.orb, image, self.cfg.min_harris)
+        if self.cfg.subpixel_window_px > 0 and len(feats):
+            feats = refine_subpixel(to_gray(image), feats, self.cfg.subpixel_window_px)
+        return feats
 
 
 
@@ -82,6 +85,18 @@ def detect(detector: cv2.ORB, image: np.ndarray, min_harris: float = 0.0) -> Fea
     uv = np.array([kp.pt for kp in keypoints], float)
     octave = np.array([kp.octave for kp in keypoints], int)
     return Features(uv, descriptors, octave)
+
+
+def refine_subpixel(gray: np.ndarray, feats: Features, window_px: int) -> Features:
+    """Move each keypoint to the sub-pixel corner (OpenCV's cornerSubPix): FAST puts a corner on a whole pixel,
+    about one pixel inside it, and that pixel is 2 to 3 cm on the ground from 15 m."""
+    pts = feats.uv_px.astype(np.float32).reshape(-1, 1, 2).copy()
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
+    refined = cv2.cornerSubPix(gray, pts, (window_px, window_px), (-1, -1), criteria).reshape(-1, 2).astype(float)
+    # A point that wandered off (a weak corner) keeps its detector position.
+    moved = np.linalg.norm(refined - feats.uv_px, axis=1)
+    uv = np.where((moved <= window_px)[:, None], refined, feats.uv_px)
+    return Features(uv, feats.descriptors, feats.octave)
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -86,9 +86,13 @@ class Localiser:
 
         R_ned_cam = R_ned_body @ self.R_body_cam
         rays = self.camera.pixels_to_rays_cam(features.uv_px) @ R_ned_cam.T  # (N, 3) unit, NED
+        # The search reaches 3 sigma of the prior, and never less than min_search_radius_m: a small object's
+        # corners look alike, and both the right and a shifted reading of them must compete on full support.
+        search_m = None
         radius_px = np.inf
         if prior is not None:
-            radius_px = 3.0 * prior.sigma_h_m * self.camera.focal_px / max(alt_m, 1.0) + cfg.inlier_px
+            search_m = max(3.0 * prior.sigma_h_m, cfg.min_search_radius_m)
+            radius_px = search_m * self.camera.focal_px / max(alt_m, 1.0) + cfg.inlier_px
         # Tracking (a good prior): candidates are the landmarks predicted near each feature. Acquisition (no
         # prior or a poor one): candidates come from descriptors alone, and the evidence must be stronger.
         tracking = radius_px <= cfg.max_guided_radius_px
@@ -112,7 +116,7 @@ class Localiser:
         feat_i, lm_id, L, d, t = feat_i[ok], lm_id[ok], L[ok], d[ok], t[ok]
         hyp = L[:, :2] - t[:, None] * d[:, :2]
         if prior is not None:
-            gate = 3.0 * prior.sigma_h_m + cfg.inlier_px / self.camera.focal_px * alt_m
+            gate = search_m + cfg.inlier_px / self.camera.focal_px * alt_m
             inside = np.linalg.norm(hyp - prior.p_ned_m[:2], axis=1) <= gate
             feat_i, lm_id, L, d, t, hyp = feat_i[inside], lm_id[inside], L[inside], d[inside], t[inside], hyp[inside]
         n_corr = len(feat_i)
@@ -142,24 +146,30 @@ class Localiser:
         # puts inside the image that do have a feature there: a wrong position predicts corners on bare ground.
         share = self._explained_share(p, R_ned_cam, cand, features)
         score = n_inl * share
+        weakest = min(ratio, cfg.prior_rival_ratio) if prior is not None else ratio
         rest = np.linalg.norm(hyp - p[:2], axis=1) > 2.0 * tau
         if np.count_nonzero(rest) >= 2:
             r_seeds, r_support, r_members = self._consensus(hyp[rest], tau[rest], feat_i[rest], n_feat)
             rb = int(np.argmax(r_support))
-            if r_support[rb] >= max(2.0, ratio * best_support):
+            if r_support[rb] >= max(2.0, weakest * best_support):
                 h_r = hyp[rest]
                 r_inl = np.zeros(len(hyp), bool)
                 r_inl[np.flatnonzero(rest)] = self._one_per_feature(r_members[rb], feat_i[rest], np.linalg.norm(h_r - h_r[r_seeds[rb]], axis=1))
                 p_r, cov_r, r_inl = self._refine(np.array([*h_r[r_seeds[rb]], cam_down]), L, d, lm_id, r_inl, alt_m)
                 r_score = int(r_inl.sum()) * self._explained_share(p_r, R_ned_cam, cand, features)
                 if r_score > score:
-                    p, cov, inl, score, r_score, share = p_r, cov_r, r_inl, r_score, score, r_score / max(int(r_inl.sum()), 1)
+                    p, cov, inl, score, r_score, p_r = p_r, cov_r, r_inl, r_score, score, p
                     n_inl = int(inl.sum())
+                    share = score / max(n_inl, 1)
                 if r_score >= ratio * score:
                     return NoFix(t_s, f"ambiguous: rival scores {r_score:.1f} against {score:.1f}", n_inl, n_corr, n_feat)
+                # A winner off the prediction, with a fair rival on it: the map's symmetry, not the evidence, chose.
+                if prior is not None and r_score >= cfg.prior_rival_ratio * score:
+                    lim = 3.0 * np.sqrt(prior.sigma_h_m**2 + np.trace(cov[:2, :2]) / 2.0)
+                    if np.linalg.norm(p[:2] - prior.p_ned_m[:2]) > lim >= np.linalg.norm(p_r[:2] - prior.p_ned_m[:2]):
+                        return NoFix(t_s, f"ambiguous: the winner is off the prediction, a rival ({r_score:.1f} against {score:.1f}) is on it", n_inl, n_corr, n_feat)
         if not tracking and share < cfg.min_explained_acquire:
             return NoFix(t_s, f"acquisition: {share:.0%} of the landmarks expected in view are seen", n_inl, n_corr, n_feat)
-        cov = cov + self._common_mode_cov(p, L[inl], alt_m)
         return Fix(t_s, p, cov, n_inl, n_corr, n_feat)
 
     # -- steps -------------------------------------------------------------------------------------------------
@@ -237,37 +247,49 @@ class Localiser:
         return keep
 
     def _refine(self, p0, L, d, lm_id, inl, alt_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Weighted least squares for the camera position over the inliers, re-selecting inliers by reprojection."""
+        """Weighted least squares over the inliers for the camera position and a small attitude correction.
+
+        Unknowns: position (3) and a rotation ``dtheta`` (3, NED) of the telemetry attitude, which turns each ray
+        ``d`` into ``d + dtheta x d``. Each correspondence says its landmark lies on its ray (2 equations); the
+        barometer ties the height and the telemetry ties ``dtheta`` to zero with their sigmas. Where the image
+        cannot tell a tilt from a shift (one small object), the attitude prior decides and its uncertainty
+        lands in the position covariance; where it can (objects spread over the view), both get better.
+        Inliers are re-selected by reprojection error.
+        """
         cfg = self.cfg.positioning
         noise = self.cfg.noise
         f = self.camera.focal_px
         lm_cov = self.map.covariance(lm_id)
         lm_var = np.trace(lm_cov[:, :2, :2], axis1=1, axis2=2) / 2.0
         P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-        p = p0
+        dx = np.zeros((len(d), 3, 3))  # cross-product matrices [d]x
+        dx[:, 0, 1], dx[:, 0, 2], dx[:, 1, 2] = -d[:, 2], d[:, 1], -d[:, 0]
+        dx[:, 1, 0], dx[:, 2, 0], dx[:, 2, 1] = d[:, 2], -d[:, 1], d[:, 0]
+        prior_info = np.diag(
+            [0.0, 0.0, 1.0 / noise.altitude_m**2]
+            + [1.0 / np.deg2rad(noise.attitude_deg) ** 2] * 2
+            + [1.0 / np.deg2rad(noise.heading_deg) ** 2]
+        )
+        p = np.asarray(p0, float)
+        dtheta = np.zeros(3)
         cov = np.full((3, 3), np.nan)
         for _ in range(3):
             if inl.sum() < 2:
                 break
-            rng = np.linalg.norm(L - p, axis=1)
-            w = 1.0 / ((rng * noise.pixel_px / f) ** 2 + lm_var)
-            A = np.einsum("k,kij->ij", w[inl], P[inl])
-            b = np.einsum("k,kij,kj->i", w[inl], P[inl], L[inl])
-            A[2, 2] += 1.0 / noise.altitude_m**2
-            b[2] += -alt_m / noise.altitude_m**2
-            p = np.linalg.solve(A, b)
-            resid = np.einsum("kij,kj->ki", P, L - p)  # offset of each landmark from its ray, m
-            err_px = np.linalg.norm(resid, axis=1) / np.maximum(rng, 1e-6) * f
+            t = np.einsum("ki,ki->k", d, L - p)  # range along each ray, m
+            w = 1.0 / ((t * noise.pixel_px / f) ** 2 + lm_var)
+            # Residual r_k = P_k (L_k - p) + t_k [d_k]x dtheta = c_k + J_k z, z = (p, dtheta), linear in z.
+            J = np.concatenate([-P, t[:, None, None] * dx], axis=2)  # (K, 3, 6)
+            c = np.einsum("kij,kj->ki", P, L)
+            A = np.einsum("k,kji,kjl->il", w[inl], J[inl], J[inl]) + prior_info
+            b = -np.einsum("k,kji,kj->i", w[inl], J[inl], c[inl])
+            b[2] += -alt_m * prior_info[2, 2]
+            z = np.linalg.solve(A, b)
+            p, dtheta = z[:3], z[3:]
+            resid = c + np.einsum("kij,j->ki", J, z)  # offset of each landmark from its corrected ray, m
+            err_px = np.linalg.norm(resid, axis=1) / np.maximum(t, 1e-6) * f
             chi2 = float(np.sum(w[inl] * np.sum(resid[inl] ** 2, axis=1)))
             dof = max(2 * int(inl.sum()) - 3, 1)
-            cov = np.linalg.inv(A) * max(1.0, chi2 / dof)
+            cov = np.linalg.inv(A)[:3, :3] * max(1.0, chi2 / dof)
             inl = inl & (err_px <= cfg.inlier_px)
         return p, cov, inl
-
-    def _common_mode_cov(self, p, L_inl, alt_m) -> np.ndarray:
-        """Error shared by all correspondences: attitude (tilt moves the fix by height x angle) and heading."""
-        noise = self.cfg.noise
-        h = max(alt_m - float(np.mean(-L_inl[:, 2])), 0.0)
-        off = float(np.mean(np.linalg.norm(L_inl[:, :2] - p[:2], axis=1)))
-        var_h = (h * np.deg2rad(noise.attitude_deg)) ** 2 + (off * np.deg2rad(noise.heading_deg)) ** 2
-        return np.diag([var_h, var_h, 0.0])

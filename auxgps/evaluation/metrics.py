@@ -45,6 +45,43 @@ def _fused(records: list[RunRecord]) -> dict:
     }
 
 
+def _blackout(records: list[RunRecord]) -> dict | None:
+    """Per run: outputs during the blackout, reported accuracy before and at its end, true error at its end,
+    and how long after it the error is back under 0.3 m and the reported accuracy back under twice its level
+    before (the worst run is pooled)."""
+    runs = [r for r in records if r.blackout_s is not None and len(r.fused_t_s)]
+    if not runs:
+        return None
+    out = []
+    for r in runs:
+        t0, t1 = r.blackout_s
+        t = r.fused_t_s
+        e = np.linalg.norm(r.fused_err_ne_m, axis=1)
+        sig = np.sqrt(np.linalg.eigvalsh(r.fused_cov_ne_m2)[:, -1])
+        before = int(np.searchsorted(t, t0) - 1)
+        end = int(np.searchsorted(t, t1) - 1)
+        inside = (t >= t0) & (t < t1)
+        ok = (e <= 0.3) & (sig <= 2.0 * sig[before]) & (t >= t1)
+        rec = np.flatnonzero(ok)
+        out.append(
+            {
+                "outputs_during": int(inside.sum()),
+                "sigma_before_m": float(sig[before]),
+                "sigma_at_end_m": float(sig[end]),
+                "error_at_end_m": float(e[end]),
+                "recovery_s": float(t[rec[0]] - t1) if len(rec) else None,
+            }
+        )
+    worst = {
+        "outputs_during": min(o["outputs_during"] for o in out),
+        "sigma_before_m": max(o["sigma_before_m"] for o in out),
+        "sigma_at_end_m": min(o["sigma_at_end_m"] for o in out),
+        "error_at_end_m": max(o["error_at_end_m"] for o in out),
+        "recovery_s": None if any(o["recovery_s"] is None for o in out) else max(o["recovery_s"] for o in out),
+    }
+    return worst
+
+
 def summarize(records: list[RunRecord]) -> dict:
     """Pooled figures over ``records``, with each run's own under ``runs``."""
     pooled = _summarize_pooled(records)
@@ -91,6 +128,7 @@ def _summarize_pooled(records: list[RunRecord]) -> dict:
             "reinitialisations": int(sum(r.n_reinit for r in records)),
         },
         "denied_s": float(np.mean([r.denied_s for r in records])),
+        "blackout": _blackout(records),
         "per_frame_ms": {
             "median": float(np.median(all_ms)) if len(all_ms) else None,
             "p99": float(np.percentile(all_ms, 99)) if len(all_ms) else None,

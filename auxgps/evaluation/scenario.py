@@ -44,6 +44,7 @@ class RunRecord:
     fused_err_ne_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     fused_cov_ne_m2: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     denied_s: float = 0.0
+    blackout_s: tuple[float, float] | None = None  # (start, end) of a camera blackout, s
     n_reinit: int = 0
     n_bad_imu: int = 0
     mapping_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -209,6 +210,7 @@ def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: Pipeli
         fused_err_ne_m=np.array(fused_err).reshape(-1, 2),
         fused_cov_ne_m2=np.array(fused_cov).reshape(-1, 2, 2),
         denied_s=float(traj.duration_s - den.gps_until_s),
+        blackout_s=(blackout[0], blackout[1]) if blackout[0] is not None else None,
         n_reinit=nav.n_reinit,
         n_bad_imu=nav.n_bad_imu,
         mapping_ms=np.array(mapping_ms),

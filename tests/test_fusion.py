@@ -1,0 +1,160 @@
+"""The navigation filter: bookkeeping against hand-computed answers, delayed fixes, gating, bad inputs."""
+
+import logging
+
+import numpy as np
+import pytest
+
+from auxgps.config import FusionConfig
+from auxgps.core.fusion import GRAVITY_NED_M_S2, ImuSample, NavFilter
+
+atol = 1e-12
+LEVEL = np.eye(3)
+HOVER_F = -GRAVITY_NED_M_S2  # specific force of a level vehicle at rest, body = NED
+
+
+def hover(t):
+    return ImuSample(t, HOVER_F.copy(), LEVEL)
+
+
+def make(cfg=None, sigma_p=1.0, sigma_v=0.5):
+    return NavFilter(cfg or FusionConfig(), 0.0, np.zeros(3), np.zeros(3), sigma_p, sigma_v)
+
+
+def test_prediction_matches_hand_computation():
+    cfg = FusionConfig(accel_noise_m_s2_sqrt_hz=0.1, accel_bias_walk_m_s2_sqrt_s=0.0)
+    f = make(cfg, sigma_p=1.0, sigma_v=0.5)
+    f._ekf.P[6:9, 6:9] = 0.0  # no bias uncertainty: the textbook constant-acceleration case
+    a = np.array([0.2, -0.1, 0.0])
+    dt = 0.1
+    f.propagate(ImuSample(dt, HOVER_F + a, LEVEL))
+    est = f.estimate()
+    assert np.allclose(est.p_ned_m, 0.5 * a * dt**2, atol=atol)
+    assert np.allclose(est.v_ned_m_s, a * dt, atol=atol)
+    # P = F P F' + Q for one axis: [[1 + 0.25 dt^2 + q dt^3/3, 0.25 dt + q dt^2/2], [., 0.25 + q dt]]
+    q = 0.1**2
+    assert est.cov_p_m2[0, 0] == pytest.approx(1.0 + 0.25 * dt**2 + q * dt**3 / 3, abs=atol)
+    assert est.cov_v_m2_s2[0, 0] == pytest.approx(0.25 + q * dt, abs=atol)
+
+
+def test_position_update_matches_hand_computation():
+    f = make(sigma_p=1.0)
+    d = f.update_position(0.0, np.array([2.0, 0.0]), np.eye(2) * 1.0)
+    # Equal variances: the estimate moves halfway, the variance halves, the innovation is 2 / sqrt(2) sigma.
+    assert d.accepted and d.mahalanobis2 == pytest.approx(2.0, abs=1e-12)
+    est = f.estimate()
+    assert est.p_ned_m[0] == pytest.approx(1.0, abs=atol)
+    assert est.cov_p_m2[0, 0] == pytest.approx(0.5, abs=atol)
+
+
+def test_delayed_fix_equals_fix_applied_on_time():
+    rng = np.random.default_rng(5)
+    imus = [ImuSample(0.01 * (k + 1), HOVER_F + rng.normal(0, 0.3, 3), LEVEL) for k in range(100)]
+    fix_t, fix_p, fix_cov = 0.50, np.array([0.3, -0.2]), np.eye(2) * 0.04
+    on_time, late = make(), make()
+    for imu in imus:
+        on_time.propagate(imu)
+        late.propagate(imu)
+        if imu.t_s == pytest.approx(fix_t):
+            on_time.update_position(fix_t, fix_p, fix_cov)
+        if imu.t_s == pytest.approx(fix_t + 0.20):  # the same fix, 200 ms late
+            late.update_position(fix_t, fix_p, fix_cov)
+    a, b = on_time.estimate(), late.estimate()
+    assert np.allclose(a.p_ned_m, b.p_ned_m, atol=1e-12) and np.allclose(a.cov_p_m2, b.cov_p_m2, atol=1e-12)
+    assert np.allclose(a.v_ned_m_s, b.v_ned_m_s, atol=1e-12)
+
+
+def test_too_old_fix_is_refused():
+    f = make()
+    for k in range(100):
+        f.propagate(hover(0.01 * (k + 1)))
+    d = f.update_position(0.2, np.zeros(2), np.eye(2))
+    assert not d.accepted and "older than the history" in d.reason
+
+
+def test_gate_rejects_outlier_then_reinitialises_on_a_consistent_run(caplog):
+    f = make(sigma_p=0.1, sigma_v=0.05)
+    t = 0.0
+    decisions = []
+    for k in range(30):
+        t += 0.1
+        for j in range(10):
+            f.propagate(hover(t - 0.1 + 0.01 * (j + 1)))
+        decisions.append(f.update_position(t, np.array([0.0, 0.0]) if k < 20 else np.array([5.0, 0.0]), np.eye(2) * 0.01))
+    assert all(d.accepted for d in decisions[:20])
+    assert not decisions[20].accepted and decisions[20].mahalanobis2 > 100
+    assert f.n_reinit == 1 and any("re-initialised" in d.reason for d in decisions[20:25])
+    assert all(d.accepted for d in decisions[26:])  # locked on again, not locked out
+    assert f.estimate().p_ned_m[0] == pytest.approx(5.0, abs=0.05)
+
+
+def test_isolated_wrong_fix_does_not_move_the_filter():
+    f = make(sigma_p=0.1, sigma_v=0.05)
+    for k in range(50):
+        f.propagate(hover(0.01 * (k + 1)))
+        if k % 10 == 9:
+            f.update_position(0.01 * (k + 1), np.zeros(2), np.eye(2) * 0.01)
+    before = f.estimate().p_ned_m.copy()
+    d = f.update_position(0.5, np.array([0.0, 3.0]), np.eye(2) * 0.01)  # a corner of the wrong cube
+    assert not d.accepted
+    assert np.allclose(f.estimate().p_ned_m, before, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "imu,why",
+    [
+        (ImuSample(1.0, np.array([np.nan, 0.0, -9.8]), LEVEL), "not 3 finite"),
+        (ImuSample(1.0, np.array([0.0, 0.0, -500.0]), LEVEL), "out of range"),
+        (ImuSample(1.0, HOVER_F, np.full((3, 3), np.nan)), "not a finite rotation"),
+        (ImuSample(0.005, HOVER_F, LEVEL), "not after"),
+    ],
+)
+def test_bad_imu_samples_are_refused_and_logged(caplog, imu, why):
+    f = make()
+    f.propagate(hover(0.01))
+    before = f.estimate()
+    with caplog.at_level(logging.WARNING):
+        assert not f.propagate(imu)
+    assert why in caplog.text and f.n_bad_imu == 1
+    after = f.estimate()
+    assert np.array_equal(before.p_ned_m, after.p_ned_m) and after.t_s == before.t_s
+
+
+def test_nan_fix_and_altitude_are_refused():
+    f = make()
+    assert not f.update_position(0.0, np.array([np.nan, 0.0]), np.eye(2)).accepted
+    assert not f.update_altitude(0.0, np.nan, 0.1)
+    assert np.all(np.isfinite(f.estimate().p_ned_m))
+
+
+def test_injected_wrong_cube_fixes_are_gated_on_a_simulated_flight():
+    """A survey leg with IMU, barometer and visual fixes at 5 Hz; every fifth fix is a corner of another cube
+    (4 to 9 m off). None may be accepted, and the output must stay within 0.30 m of the truth."""
+    from auxgps.core.geometry import R_ned_body_from_euler
+    from auxgps.sim.flight import SimConfig, fly, imu_bias, lawnmower_waypoints, sense_imu
+
+    sim = SimConfig()
+    cfg = FusionConfig()
+    rng = np.random.default_rng(42)
+    traj = fly(lawnmower_waypoints(sim.mapping, 15.0)[:6], 1.0, sim.vehicle, rng)
+    bias = imu_bias(sim.noise, rng)
+    f = NavFilter(cfg, 0.0, traj.p_ned_m[0], np.zeros(3), 0.05, 0.05)
+    worst = 0.0
+    wrong_accepted = 0
+    for i in range(1, len(traj.t_s)):
+        t, fb, eul = sense_imu(traj, i, sim.noise, bias, rng)
+        f.propagate(ImuSample(t, fb, R_ned_body_from_euler(*eul)))
+        if i % 10 == 0:
+            f.update_altitude(t, -traj.p_ned_m[i, 2] + rng.normal(0, 0.05), 0.08)
+        if i % 20 == 0:
+            k = i // 20
+            truth = traj.p_ned_m[i, :2]
+            if k % 5 == 4:
+                offset = rng.uniform(4.0, 9.0) * np.array([np.cos(k), np.sin(k)])
+                wrong_accepted += f.update_position(t, truth + offset, np.eye(2) * 0.01).accepted
+            else:
+                f.update_position(t, truth + rng.normal(0, 0.07, 2), np.eye(2) * 0.1**2)
+        worst = max(worst, float(np.linalg.norm(f.estimate().p_ned_m[:2] - traj.p_ned_m[i, :2])))
+    assert wrong_accepted == 0
+    assert worst <= 0.30
+    assert f.n_reinit == 0
