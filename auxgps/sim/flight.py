@@ -155,61 +155,99 @@ def _attitude_from_thrust(f_ned: np.ndarray, yaw_rad: float) -> np.ndarray:
     return np.column_stack([x_b, y_b, z_b])
 
 
-def fly(waypoints_ned_m: np.ndarray, speed_m_s: float, vehicle: VehicleConfig, rng: np.random.Generator, dt_s: float = 0.01) -> Trajectory:
-    """Fly through ``waypoints_ned_m`` in order, starting at rest at the first one; stop at the last."""
-    wps = np.asarray(waypoints_ned_m, float)
-    p = wps[0].copy()
-    v = np.zeros(3)
-    wind = np.array([vehicle.wind_north_m_s, vehicle.wind_east_m_s, 0.0])
-    gust = np.zeros(3)
-    leg = wps[1] - wps[0] if len(wps) > 1 else np.zeros(3)
-    yaw = float(np.arctan2(leg[1], leg[0]))
-    target = 1
-    brake = 0.6 * vehicle.max_accel_m_s2
-    max_yaw_step = np.deg2rad(vehicle.yaw_rate_deg_s) * dt_s
-    gust_decay = np.exp(-dt_s / vehicle.gust_tau_s)
-    gust_kick = vehicle.gust_sigma_m_s2 * np.sqrt(1 - gust_decay**2)
-    ts, ps, vs, accs, eulers = [], [], [], [], []
-    t = 0.0
-    settled = 0
-    while True:
-        if target < len(wps):
-            d = wps[target] - p
-            dist = np.linalg.norm(d)
-            if dist < vehicle.waypoint_radius_m:
-                target += 1
-                if target < len(wps):
-                    seg = wps[target] - wps[target - 1]
-                    if np.linalg.norm(seg[:2]) >= 5.0:  # turn to face long legs; keep heading on short steps
-                        leg = seg
-                continue
-            v_des = d / dist * min(speed_m_s, np.sqrt(2 * brake * dist))
-        else:
-            d = wps[-1] - p
-            v_des = np.clip(d, -0.5, 0.5)
-            settled += 1
-        a_cmd = vehicle.velocity_gain_per_s * (v_des - v)
+class Multirotor:
+    """The vehicle's true motion, one step at a time: it tilts its thrust to follow a velocity command.
+
+    State: ``p_ned_m``, ``v_ned_m_s``, ``yaw_rad`` and a gust (an Ornstein-Uhlenbeck acceleration). The
+    controller sees ``v_est`` (its own velocity estimate; the truth when not given).
+    """
+
+    def __init__(self, vehicle: VehicleConfig, p_ned_m: np.ndarray, yaw_rad: float, dt_s: float) -> None:
+        self.cfg = vehicle
+        self.p_ned_m = np.asarray(p_ned_m, float).copy()
+        self.v_ned_m_s = np.zeros(3)
+        self.yaw_rad = float(yaw_rad)
+        self.dt_s = dt_s
+        self._gust = np.zeros(3)
+        self._wind = np.array([vehicle.wind_north_m_s, vehicle.wind_east_m_s, 0.0])
+        self._gust_decay = np.exp(-dt_s / vehicle.gust_tau_s)
+        self._gust_kick = vehicle.gust_sigma_m_s2 * np.sqrt(1 - self._gust_decay**2)
+        self._max_yaw_step = np.deg2rad(vehicle.yaw_rate_deg_s) * dt_s
+
+    def command(self, v_des_ned_m_s: np.ndarray, yaw_goal_rad: float, rng: np.random.Generator, v_est=None):
+        """The acceleration (NED, m/s^2) and attitude (roll, pitch, yaw, rad) for the coming step."""
+        cfg = self.cfg
+        v_ctrl = self.v_ned_m_s if v_est is None else np.asarray(v_est, float)
+        a_cmd = cfg.velocity_gain_per_s * (np.asarray(v_des_ned_m_s, float) - v_ctrl)
         n_a = np.linalg.norm(a_cmd)
-        if n_a > vehicle.max_accel_m_s2:
-            a_cmd *= vehicle.max_accel_m_s2 / n_a
+        if n_a > cfg.max_accel_m_s2:
+            a_cmd *= cfg.max_accel_m_s2 / n_a
         # Thrust provides the commanded acceleration, holds against gravity and cancels the drag it expects.
-        drag = -vehicle.drag_per_s * (v - wind)
+        drag = -cfg.drag_per_s * (self.v_ned_m_s - self._wind)
         f_thrust = a_cmd - np.array([0.0, 0.0, GRAVITY_M_S2]) - drag
-        goal = float(np.arctan2(leg[1], leg[0]))
-        dyaw = (goal - yaw + np.pi) % (2 * np.pi) - np.pi
-        yaw += float(np.clip(dyaw, -max_yaw_step, max_yaw_step))
-        R = _attitude_from_thrust(f_thrust, yaw)
-        gust = gust_decay * gust + gust_kick * rng.standard_normal(3) * np.array([1.0, 1.0, 0.3])
-        a = a_cmd + gust
+        dyaw = (yaw_goal_rad - self.yaw_rad + np.pi) % (2 * np.pi) - np.pi
+        self.yaw_rad += float(np.clip(dyaw, -self._max_yaw_step, self._max_yaw_step))
+        R = _attitude_from_thrust(f_thrust, self.yaw_rad)
+        self._gust = self._gust_decay * self._gust + self._gust_kick * rng.standard_normal(3) * np.array([1.0, 1.0, 0.3])
+        return a_cmd + self._gust, np.array(euler_from_R_ned_body(R))
+
+    def advance(self, a_ned_m_s2: np.ndarray) -> None:
+        """Integrate one step with the acceleration ``command`` returned (semi-implicit Euler)."""
+        self.v_ned_m_s = self.v_ned_m_s + a_ned_m_s2 * self.dt_s
+        self.p_ned_m = self.p_ned_m + self.v_ned_m_s * self.dt_s
+
+
+class WaypointGuidance:
+    """Velocity and heading commands that take a vehicle through waypoints, braking into each one.
+
+    Heading follows long legs (5 m or more) and is kept on short steps, as a survey drone's would be.
+    """
+
+    def __init__(self, waypoints_ned_m: np.ndarray, speed_m_s: float, vehicle: VehicleConfig) -> None:
+        self.wps = np.asarray(waypoints_ned_m, float)
+        self.speed = speed_m_s
+        self.cfg = vehicle
+        self.target = 1
+        leg = self.wps[1] - self.wps[0] if len(self.wps) > 1 else np.array([1.0, 0.0, 0.0])
+        self.yaw_goal_rad = float(np.arctan2(leg[1], leg[0]))
+
+    @property
+    def done(self) -> bool:
+        return self.target >= len(self.wps)
+
+    def command(self, p_ned_m: np.ndarray) -> np.ndarray:
+        """Velocity command (NED, m/s) from the position ``p_ned_m`` the vehicle believes it is at."""
+        brake = 0.6 * self.cfg.max_accel_m_s2
+        while self.target < len(self.wps):
+            d = self.wps[self.target] - p_ned_m
+            dist = np.linalg.norm(d)
+            if dist >= self.cfg.waypoint_radius_m:
+                return d / dist * min(self.speed, np.sqrt(2 * brake * dist))
+            self.target += 1
+            if self.target < len(self.wps):
+                seg = self.wps[self.target] - self.wps[self.target - 1]
+                if np.linalg.norm(seg[:2]) >= 5.0:
+                    self.yaw_goal_rad = float(np.arctan2(seg[1], seg[0]))
+        return np.clip(self.wps[-1] - p_ned_m, -0.5, 0.5)
+
+
+def fly(waypoints_ned_m: np.ndarray, speed_m_s: float, vehicle: VehicleConfig, rng: np.random.Generator, dt_s: float = 0.01) -> Trajectory:
+    """Fly through ``waypoints_ned_m`` in order, starting at rest at the first one, and hover 1 s at the last."""
+    guide = WaypointGuidance(waypoints_ned_m, speed_m_s, vehicle)
+    craft = Multirotor(vehicle, guide.wps[0], guide.yaw_goal_rad, dt_s)
+    ts, ps, vs, accs, eulers = [], [], [], [], []
+    settled = 0
+    t = 0.0
+    while settled <= int(1.0 / dt_s):
+        v_des = guide.command(craft.p_ned_m)
+        settled += guide.done
+        a, euler = craft.command(v_des, guide.yaw_goal_rad, rng)
         ts.append(t)
-        ps.append(p.copy())
-        vs.append(v.copy())
-        accs.append(a.copy())
-        eulers.append(euler_from_R_ned_body(R))
-        if settled > int(1.0 / dt_s):
-            break
-        v = v + a * dt_s
-        p = p + v * dt_s
+        ps.append(craft.p_ned_m.copy())
+        vs.append(craft.v_ned_m_s.copy())
+        accs.append(a)
+        eulers.append(euler)
+        craft.advance(a)
         t += dt_s
     return Trajectory(np.array(ts), np.array(ps), np.array(vs), np.array(accs), np.array(eulers))
 
