@@ -59,6 +59,42 @@ class NoFix:
 LocateResult = Fix | NoFix
 
 
+@dataclass(frozen=True)
+class _Correspondences:
+    """Feature-landmark pairs of one frame and what each implies: ``hyp`` (K, 2) the camera's north/east if
+    the pair is right, ``tau`` (K,) how far apart two agreeing hypotheses may be, m."""
+
+    feat_i: np.ndarray
+    lm_id: np.ndarray
+    L: np.ndarray
+    d: np.ndarray
+    hyp: np.ndarray
+    tau: np.ndarray
+
+    def subset(self, mask: np.ndarray) -> "_Correspondences":
+        return _Correspondences(*(a[mask] for a in (self.feat_i, self.lm_id, self.L, self.d, self.hyp, self.tau)))
+
+
+@dataclass(frozen=True)
+class _View:
+    """What a frame's readings are checked against: its features, attitude, height and candidate landmarks."""
+
+    features: Features
+    R_ned_cam: np.ndarray
+    alt_m: float
+    cand: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Reading:
+    """One candidate position of a frame: refined position, covariance, inlier mask, score."""
+
+    p: np.ndarray
+    cov: np.ndarray
+    inl: np.ndarray
+    score: float
+
+
 class Localiser:
     """Locates frames against a :class:`LandmarkMap`."""
 
@@ -129,50 +165,64 @@ class Localiser:
         tan_off = np.linalg.norm(d[:, :2], axis=1) / np.abs(d[:, 2])
         tau = cfg.inlier_px / self.camera.focal_px * range_m + 2.0 * self.cfg.noise.altitude_m * tan_off
 
-        seeds, support, members = self._consensus(hyp, tau, feat_i, n_feat)
+        corr = _Correspondences(feat_i, lm_id, L, d, hyp, tau)
+        view = _View(features, R_ned_cam, alt_m, cand)
+        seeds, support, members = self._consensus(corr, n_feat)
         best = int(np.argmax(support))
         best_support = int(support[best])
         if best_support < min_inliers:
             return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
-        inl = self._one_per_feature(members[best], feat_i, np.linalg.norm(hyp - hyp[seeds[best]], axis=1))
-        p0 = np.array([*hyp[seeds[best]], cam_down])
-        p, cov, inl = self._refine(p0, L, d, lm_id, inl, alt_m)
-        n_inl = int(inl.sum())
-        if n_inl < min_inliers or not np.all(np.isfinite(p)):
+        winner = self._reading(corr, view, members[best], seeds[best])
+        n_inl = int(winner.inl.sum())
+        if n_inl < min_inliers or not np.all(np.isfinite(winner.p)):
             return NoFix(t_s, f"{n_inl} inliers after refinement", n_inl, n_corr, n_feat)
-        # Second round without everything the winner explains: a rival position nearly as well supported (the
-        # same features taken for other landmarks, as with a corner matched to the wrong one of identical
-        # cubes) makes the frame ambiguous. Each is scored by its inliers times the share of the landmarks it
-        # puts inside the image that do have a feature there: a wrong position predicts corners on bare ground.
-        share = self._explained_share(p, R_ned_cam, cand, features)
-        score = n_inl * share
-        weakest = min(ratio, cfg.prior_rival_ratio) if prior is not None else ratio
-        rest = np.linalg.norm(hyp - p[:2], axis=1) > 2.0 * tau
-        if np.count_nonzero(rest) >= 2:
-            r_seeds, r_support, r_members = self._consensus(hyp[rest], tau[rest], feat_i[rest], n_feat)
-            rb = int(np.argmax(r_support))
-            if r_support[rb] >= max(2.0, weakest * best_support):
-                h_r = hyp[rest]
-                r_inl = np.zeros(len(hyp), bool)
-                r_inl[np.flatnonzero(rest)] = self._one_per_feature(r_members[rb], feat_i[rest], np.linalg.norm(h_r - h_r[r_seeds[rb]], axis=1))
-                p_r, cov_r, r_inl = self._refine(np.array([*h_r[r_seeds[rb]], cam_down]), L, d, lm_id, r_inl, alt_m)
-                r_score = int(r_inl.sum()) * self._explained_share(p_r, R_ned_cam, cand, features)
-                if r_score > score:
-                    p, cov, inl, score, r_score, p_r = p_r, cov_r, r_inl, r_score, score, p
-                    n_inl = int(inl.sum())
-                    share = score / max(n_inl, 1)
-                if r_score >= ratio * score:
-                    return NoFix(t_s, f"ambiguous: rival scores {r_score:.1f} against {score:.1f}", n_inl, n_corr, n_feat)
-                # A winner off the prediction, with a fair rival on it: the map's symmetry, not the evidence, chose.
-                if prior is not None and r_score >= cfg.prior_rival_ratio * score:
-                    lim = 3.0 * np.sqrt(prior.sigma_h_m**2 + np.trace(cov[:2, :2]) / 2.0)
-                    if np.linalg.norm(p[:2] - prior.p_ned_m[:2]) > lim >= np.linalg.norm(p_r[:2] - prior.p_ned_m[:2]):
-                        return NoFix(t_s, f"ambiguous: the winner is off the prediction, a rival ({r_score:.1f} against {score:.1f}) is on it", n_inl, n_corr, n_feat)
+        verdict = self._against_rival(winner, corr, view, prior, best_support, ratio)
+        if isinstance(verdict, str):
+            return NoFix(t_s, verdict, n_inl, n_corr, n_feat)
+        p, cov, inl = verdict.p, verdict.cov, verdict.inl
+        n_inl = int(inl.sum())
+        share = verdict.score / max(n_inl, 1)
         if not tracking and share < cfg.min_explained_acquire:
             return NoFix(t_s, f"acquisition: {share:.0%} of the landmarks expected in view are seen", n_inl, n_corr, n_feat)
         return Fix(t_s, p, cov, n_inl, n_corr, n_feat)
 
     # -- steps -------------------------------------------------------------------------------------------------
+
+    def _against_rival(self, winner: _Reading, corr: _Correspondences, view: _View, prior, best_support: int, ratio: float):
+        """The winner, or the rival if it scores higher, or a reason (str) why the frame is ambiguous.
+
+        Second round without everything the winner explains: a rival position nearly as well supported (the
+        same features taken for other landmarks, as with a corner matched to the wrong one of identical cubes)
+        makes the frame ambiguous. Each is scored by its inliers times the share of the landmarks it puts inside
+        the image that do have a feature there: a wrong position predicts corners on bare ground. And a winner
+        off the prediction, with a fair rival on it, is the map's symmetry choosing, not the evidence.
+        """
+        cfg = self.cfg.positioning
+        weakest = min(ratio, cfg.prior_rival_ratio) if prior is not None else ratio
+        rest = np.linalg.norm(corr.hyp - winner.p[:2], axis=1) > 2.0 * corr.tau
+        if np.count_nonzero(rest) < 2:
+            return winner
+        others = corr.subset(rest)
+        r_seeds, r_support, r_members = self._consensus(others, len(view.features))
+        rb = int(np.argmax(r_support))
+        if r_support[rb] < max(2.0, weakest * best_support):
+            return winner
+        rival = self._reading(others, view, r_members[rb], r_seeds[rb])
+        if rival.score > winner.score:
+            winner, rival = rival, winner
+        if rival.score >= ratio * winner.score:
+            return f"ambiguous: rival scores {rival.score:.1f} against {winner.score:.1f}"
+        if prior is not None and rival.score >= cfg.prior_rival_ratio * winner.score:
+            lim = 3.0 * np.sqrt(prior.sigma_h_m**2 + np.trace(winner.cov[:2, :2]) / 2.0)
+            if np.linalg.norm(winner.p[:2] - prior.p_ned_m[:2]) > lim >= np.linalg.norm(rival.p[:2] - prior.p_ned_m[:2]):
+                return f"ambiguous: the winner is off the prediction, a rival ({rival.score:.1f} against {winner.score:.1f}) is on it"
+        return winner
+
+    def _reading(self, corr: _Correspondences, view: _View, member_row: np.ndarray, seed: int) -> _Reading:
+        """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
+        inl = self._one_per_feature(member_row, corr.feat_i, np.linalg.norm(corr.hyp - corr.hyp[seed], axis=1))
+        p, cov, inl = self._refine(np.array([*corr.hyp[seed], -view.alt_m]), corr, inl, view.alt_m)
+        return _Reading(p, cov, inl, int(inl.sum()) * self._explained_share(p, view.R_ned_cam, view.cand, view.features))
 
     def _candidates(self, alt_m: float, prior: PositionPrior | None) -> np.ndarray:
         """Usable landmarks within reach of the prior's footprint (all usable ones without a prior)."""
@@ -223,9 +273,10 @@ class Localiser:
         ok = hamming(features.descriptors[fi], self.map.descriptors[cand[ci]]) <= self.cfg.positioning.max_hamming
         return fi[ok], cand[ci[ok]]
 
-    def _consensus(self, hyp, tau, feat_i, n_feat) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _consensus(self, corr: _Correspondences, n_feat: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Seed indices (S,), their support in distinct features (S,), and the (S, K) membership matrix."""
         cfg = self.cfg.positioning
+        hyp, tau, feat_i = corr.hyp, corr.tau, corr.feat_i
         K = len(hyp)
         # Seeds: every correspondence when few, else an even spread (deterministic).
         seeds = np.arange(K) if K <= cfg.max_seeds else np.linspace(0, K - 1, cfg.max_seeds).astype(int)
@@ -246,7 +297,7 @@ class Localiser:
         keep[order[first]] = True
         return keep
 
-    def _refine(self, p0, L, d, lm_id, inl, alt_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _refine(self, p0: np.ndarray, corr: _Correspondences, inl: np.ndarray, alt_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Weighted least squares over the inliers for the camera position and a small attitude correction.
 
         Unknowns: position (3) and a rotation ``dtheta`` (3, NED) of the telemetry attitude, which turns each ray
@@ -259,7 +310,8 @@ class Localiser:
         cfg = self.cfg.positioning
         noise = self.cfg.noise
         f = self.camera.focal_px
-        lm_cov = self.map.covariance(lm_id)
+        L, d = corr.L, corr.d
+        lm_cov = self.map.covariance(corr.lm_id)
         lm_var = np.trace(lm_cov[:, :2, :2], axis1=1, axis2=2) / 2.0
         P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
         dx = np.zeros((len(d), 3, 3))  # cross-product matrices [d]x
