@@ -1,0 +1,65 @@
+"""Map files: round trip, atomic writes, and one clear error for every way a file can be bad."""
+
+import numpy as np
+import pytest
+
+from auxgps.core.geometry import LocalFrame
+from auxgps.core.landmarks import LandmarkMap
+from auxgps.errors import MapError
+from auxgps.io.map_file import load_map, save_map
+
+FRAME = LocalFrame(47.397742, 8.545594, 488.0)
+
+
+def some_map(n=50, seed=0):
+    rng = np.random.default_rng(seed)
+    lm = LandmarkMap(capacity=8)
+    lm.add(rng.integers(0, 256, (n, 32), dtype=np.uint8), rng.normal(0, 5, (n, 3)), np.repeat(np.eye(3)[None] * 100.0, n, 0), np.ones(n))
+    lm.n_seen[:n] = rng.integers(1, 100, n)
+    return lm
+
+
+def test_round_trip(tmp_path):
+    lm = some_map()
+    save_map(tmp_path / "m.npz", lm, FRAME)
+    back, frame = load_map(tmp_path / "m.npz")
+    assert frame == FRAME and len(back) == len(lm)
+    for name in ("descriptors", "p_ned_m", "info_packed", "n_seen", "n_visible", "view_cos", "chi2_mean"):
+        assert np.array_equal(getattr(back, name)[: len(lm)], getattr(lm, name)[: len(lm)])
+    back.add(np.zeros((1, 32), np.uint8), np.zeros((1, 3)), np.eye(3)[None], np.ones(1))  # still growable
+    assert len(back) == len(lm) + 1
+
+
+def test_truncated_file_is_one_clear_error(tmp_path):
+    save_map(tmp_path / "m.npz", some_map(), FRAME)
+    data = (tmp_path / "m.npz").read_bytes()
+    for cut in (10, len(data) // 2, len(data) - 20):
+        (tmp_path / "cut.npz").write_bytes(data[:cut])
+        with pytest.raises(MapError, match="unreadable or truncated"):
+            load_map(tmp_path / "cut.npz")
+
+
+def test_missing_and_foreign_files(tmp_path):
+    with pytest.raises(MapError, match="no such map file"):
+        load_map(tmp_path / "absent.npz")
+    (tmp_path / "text.npz").write_text("not a map")
+    with pytest.raises(MapError):
+        load_map(tmp_path / "text.npz")
+    np.savez(tmp_path / "other.npz", meta=np.array('{"format": "auxgps-map", "version": 99, "count": 0}'))
+    with pytest.raises(MapError, match="version 99"):
+        load_map(tmp_path / "other.npz")
+
+
+def test_failed_write_keeps_the_old_map(tmp_path, monkeypatch):
+    target = tmp_path / "m.npz"
+    save_map(target, some_map(seed=1), FRAME)
+    before = target.read_bytes()
+
+    def boom(*a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez", boom)
+    with pytest.raises(OSError):
+        save_map(target, some_map(seed=2), FRAME)
+    assert target.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["m.npz"]  # no temporary left behind
