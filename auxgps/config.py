@@ -102,11 +102,11 @@ class PositioningConfig:
     ambiguity_ratio: Annotated[float, Field(gt=0, le=1)] = 0.8
     # Acquisition, without a usable prior: more descriptor candidates, stronger evidence.
     k_best_acquire: Annotated[int, Field(ge=1, le=256)] = 32
-    min_inliers_acquire: Annotated[int, Field(ge=2)] = 6
+    min_inliers_acquire: Annotated[int, Field(ge=2)] = 4
     ambiguity_ratio_acquire: Annotated[float, Field(gt=0, le=1)] = 0.6
     min_explained_acquire: Probability = 0.6
     max_seeds: Annotated[int, Field(ge=1)] = 300
-    max_guided_radius_px: Positive = 200.0
+    max_tracking_search_m: Positive = 1.5  # a prior looser than this (3 sigma, m) means acquisition
     min_search_radius_m: NonNegative = 1.0
     prior_rival_ratio: Annotated[float, Field(gt=0, le=1)] = 0.5
     max_speed_m_s: Positive = 5.0

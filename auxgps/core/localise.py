@@ -129,9 +129,11 @@ class Localiser:
         if prior is not None:
             search_m = max(3.0 * prior.sigma_h_m, cfg.min_search_radius_m)
             radius_px = search_m * self.camera.focal_px / max(alt_m, 1.0) + cfg.inlier_px
-        # Tracking (a good prior): candidates are the landmarks predicted near each feature. Acquisition (no
-        # prior or a poor one): candidates come from descriptors alone, and the evidence must be stronger.
-        tracking = radius_px <= cfg.max_guided_radius_px
+        # Tracking (a prior tight enough to tell apart objects, and the symmetric readings of a large one):
+        # candidates are the landmarks predicted near each feature. Acquisition (no prior, or a loose one after
+        # a long stretch without fixes): candidates come from descriptors alone, and the evidence must be
+        # stronger.
+        tracking = prior is not None and 3.0 * prior.sigma_h_m <= cfg.max_tracking_search_m
         if tracking:
             pose = CameraPose(np.array([prior.p_ned_m[0], prior.p_ned_m[1], -alt_m]), R_ned_cam)
             feat_i, lm_id = self._match_guided(features, cand, pose, radius_px)
