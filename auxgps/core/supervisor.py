@@ -1,0 +1,131 @@
+"""What auxgps is doing, and whether GPS1 can be trusted: the companion's decisions, free of I/O.
+
+Modes
+-----
+- ``MAPPING``: GPS1 is trusted. Landmarks are geotagged from it, GPS1 corrects the filter, and frames are also
+  located against the map as a running self-check.
+- ``POSITIONING``: GPS1 is lost, degraded, or disagrees with auxgps (a jump: jamming or spoofing). Mapping stops
+  at once; the filter runs on visual fixes alone.
+- ``NO_FIX``: auxgps does not believe its own estimate (no recent correction, or too uncertain); it keeps
+  sending at rate, without a fix.
+
+GPS1 becomes trusted again only after it has agreed with auxgps's estimate for ``rejoin_s`` without a break.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class Mode(enum.Enum):
+    MAPPING = "mapping"
+    POSITIONING = "positioning"
+    NO_FIX = "no fix"
+
+
+@dataclass(frozen=True)
+class Gps1Sample:
+    """GPS1 as the autopilot reports it (GPS_RAW_INT): time s, fix type, satellites, NED position m, accuracy m."""
+
+    t_s: float
+    fix_type: int
+    satellites: int
+    p_ned_m: np.ndarray
+    h_acc_m: float
+
+
+@dataclass(frozen=True)
+class SupervisorConfig:
+    min_fix_type: int = 3
+    min_satellites: int = 6
+    stale_s: float = 1.0
+    agree_chi2: float = 13.8  # 99.9% for 2 degrees of freedom
+    rejoin_s: float = 10.0
+    max_sigma_h_m: float = 2.0
+    max_fix_age_s: float = 5.0
+    status_interval_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class Decision:
+    """The mode now, whether GPS1 is trusted, and a status line to send (None: nothing new to say)."""
+
+    mode: Mode
+    gps1_trusted: bool
+    status: str | None
+
+
+class Supervisor:
+    """Decides the mode from GPS1 and the filter; rate-limits the status lines that announce changes."""
+
+    def __init__(self, cfg: SupervisorConfig | None = None) -> None:
+        self.cfg = cfg or SupervisorConfig()
+        self.mode: Mode = Mode.NO_FIX
+        self.gps1_trusted = False
+        self._gps1: Gps1Sample | None = None
+        self._agree_since: float | None = None
+        self._ever_trusted = False
+        self._last_status_t = -np.inf
+        self._pending_status: str | None = None
+        self.disagreement: str | None = None
+
+    def gps1(self, sample: Gps1Sample, p_est_ned_m: np.ndarray | None, cov_est_ne_m2: np.ndarray | None) -> None:
+        """Take a GPS1 report; ``p_est``/``cov_est`` are auxgps's own estimate at the same time (None if none)."""
+        cfg = self.cfg
+        self._gps1 = sample
+        good = sample.fix_type >= cfg.min_fix_type and sample.satellites >= cfg.min_satellites and np.all(np.isfinite(sample.p_ned_m))
+        agrees = True
+        self.disagreement = None
+        if good and p_est_ned_m is not None and cov_est_ne_m2 is not None:
+            d = sample.p_ned_m[:2] - p_est_ned_m[:2]
+            S = cov_est_ne_m2 + np.eye(2) * max(sample.h_acc_m, 0.05) ** 2
+            m2 = float(d @ np.linalg.solve(S, d))
+            agrees = m2 <= cfg.agree_chi2
+            if not agrees:
+                self.disagreement = f"GPS1 disagrees with auxgps by {np.linalg.norm(d):.1f} m"
+        if not (good and agrees):
+            if self.gps1_trusted:
+                self._say(self.disagreement or f"GPS1 lost (fix {sample.fix_type}, {sample.satellites} sats): positioning visually", sample.t_s)
+            self.gps1_trusted = False
+            self._agree_since = None
+            return
+        if self.gps1_trusted:
+            return
+        if not self._ever_trusted:
+            self.gps1_trusted = self._ever_trusted = True  # first lock: nothing of ours to compare with yet
+            return
+        self._agree_since = sample.t_s if self._agree_since is None else self._agree_since
+        if sample.t_s - self._agree_since >= cfg.rejoin_s:
+            self.gps1_trusted = True
+            self._say(f"GPS1 agrees with auxgps for {cfg.rejoin_s:.0f} s: mapping again", sample.t_s)
+
+    def decide(self, t_s: float, *, sigma_h_m: float | None, last_correction_t_s: float | None) -> Decision:
+        """The mode at ``t_s`` given the filter's horizontal sigma and the time of its last correction."""
+        cfg = self.cfg
+        if self._gps1 is not None and t_s - self._gps1.t_s > cfg.stale_s and self.gps1_trusted:
+            self.gps1_trusted = False
+            self._agree_since = None
+            self._say("GPS1 silent: positioning visually", t_s)
+        believed = (
+            sigma_h_m is not None
+            and np.isfinite(sigma_h_m)
+            and sigma_h_m <= cfg.max_sigma_h_m
+            and last_correction_t_s is not None
+            and t_s - last_correction_t_s <= cfg.max_fix_age_s
+        )
+        mode = Mode.MAPPING if (self.gps1_trusted and believed) else Mode.POSITIONING if believed else Mode.NO_FIX
+        if mode != self.mode:
+            self._say(f"auxgps: {mode.value}", t_s)
+            self.mode = mode
+        status = None
+        if self._pending_status is not None and t_s - self._last_status_t >= cfg.status_interval_s:
+            status, self._pending_status = self._pending_status, None
+            self._last_status_t = t_s
+        return Decision(mode, self.gps1_trusted, status)
+
+    def _say(self, text: str, t_s: float) -> None:
+        # Several changes within the rate limit: the latest wins, the earlier ones are superseded.
+        self._pending_status = text if self._pending_status is None else f"{self._pending_status}; {text}"[-120:]

@@ -1,0 +1,67 @@
+"""The companion's decisions: when GPS1 is trusted, which mode, and what it announces."""
+
+import numpy as np
+
+from auxgps.core.supervisor import Gps1Sample, Mode, Supervisor, SupervisorConfig
+
+P = np.array([1.0, 2.0, -15.0])
+COV = np.eye(2) * 0.01
+
+
+def good(t, p=P):
+    return Gps1Sample(t, 6, 10, p, 0.05)
+
+
+def test_healthy_gps1_means_mapping():
+    s = Supervisor()
+    s.gps1(good(0.0), None, None)
+    d = s.decide(0.1, sigma_h_m=0.05, last_correction_t_s=0.0)
+    assert d.mode == Mode.MAPPING and d.gps1_trusted and d.status == "auxgps: mapping"
+
+
+def test_lost_gps1_switches_to_positioning_at_once_and_says_so():
+    s = Supervisor()
+    s.gps1(good(0.0), None, None)
+    s.decide(0.1, sigma_h_m=0.05, last_correction_t_s=0.0)
+    s.gps1(Gps1Sample(1.5, 0, 3, P, 99.0), P, COV)
+    d = s.decide(1.6, sigma_h_m=0.1, last_correction_t_s=1.5)
+    assert d.mode == Mode.POSITIONING and not d.gps1_trusted
+    assert "GPS1 lost" in d.status and "positioning" in d.status
+
+
+def test_jump_is_distrusted_and_named():
+    s = Supervisor()
+    s.gps1(good(0.0), None, None)
+    s.gps1(good(1.0, P + [30.0, 0.0, 0.0]), P, COV)  # spoofed: 30 m off our estimate
+    assert not s.gps1_trusted and "disagrees" in s.disagreement
+
+
+def test_gps1_rejoins_only_after_agreeing_for_rejoin_s():
+    cfg = SupervisorConfig(rejoin_s=10.0)
+    s = Supervisor(cfg)
+    s.gps1(good(0.0), None, None)
+    s.gps1(Gps1Sample(1.0, 0, 3, P, 99.0), P, COV)
+    assert not s.gps1_trusted
+    for t in np.arange(2.0, 11.9, 0.2):
+        s.gps1(good(t), P, COV)
+        assert not s.gps1_trusted
+    s.gps1(good(12.0), P, COV)
+    assert s.gps1_trusted
+
+
+def test_no_recent_correction_means_no_fix():
+    s = Supervisor()
+    assert s.decide(0.0, sigma_h_m=None, last_correction_t_s=None).mode == Mode.NO_FIX
+    assert s.decide(10.0, sigma_h_m=0.1, last_correction_t_s=2.0).mode == Mode.NO_FIX  # 8 s old
+    assert s.decide(10.0, sigma_h_m=5.0, last_correction_t_s=9.9).mode == Mode.NO_FIX  # too uncertain
+
+
+def test_status_lines_at_most_one_a_second():
+    s = Supervisor()
+    s.gps1(good(0.0), None, None)
+    first = s.decide(0.0, sigma_h_m=0.05, last_correction_t_s=0.0)
+    s.gps1(Gps1Sample(0.2, 0, 3, P, 99.0), P, COV)
+    second = s.decide(0.3, sigma_h_m=0.1, last_correction_t_s=0.2)
+    third = s.decide(1.0, sigma_h_m=0.1, last_correction_t_s=0.9)
+    assert first.status is not None and second.status is None and third.status is not None
+    assert "positioning" in third.status
