@@ -90,6 +90,24 @@ def _demo(args) -> int:
     return _eval(args)
 
 
+def _run(args) -> int:
+    import logging
+
+    from auxgps.companion import Companion, RunOptions
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    opts = RunOptions(
+        connect=args.connect,
+        camera=args.camera,
+        map_in=args.map,
+        map_out=args.save_map,
+        log_dir=args.log_dir,
+        duration_s=args.duration,
+        gps_input_rate_hz=args.rate,
+    )
+    return Companion(load_pipeline_config(args.config), opts).run()
+
+
 def _positive(kind):
     def parse(text):
         value = kind(text)
@@ -119,6 +137,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--runs", type=_positive(int), default=1, help="seeded runs (default 1)")
     add_eval_options(p)
     p.set_defaults(func=_eval)
+
+    p = sub.add_parser("run", help="the companion process: MAVLink to ArduPilot, camera in, GPS_INPUT out as GPS2")
+    p.add_argument("--connect", required=True, help="pymavlink URL: tcp:127.0.0.1:5762, udpin:0.0.0.0:14550, /dev/ttyAMA0,921600")
+    p.add_argument("--camera", required=True, help="sim:WORLD.yaml (rendered at the simulator's truth), a video file, or a device index")
+    p.add_argument("--config", help="pipeline config YAML")
+    p.add_argument("--map", help="load this map file at start (it must exist and be readable)")
+    p.add_argument("--save-map", help="save the map here at the end, atomically")
+    p.add_argument("--log-dir", default="out/run", help="CSV logs of fixes, gate decisions, GPS_INPUT and events")
+    p.add_argument("--duration", type=_positive(float), help="stop after this many seconds")
+    p.add_argument("--rate", type=_positive(float), default=10.0, help="GPS_INPUT rate, Hz (default 10)")
+    p.set_defaults(func=_run)
 
     p = sub.add_parser("demo", help="one thesis scenario (4 cubes, 15 m), end to end, with its table")
     add_eval_options(p)

@@ -1,0 +1,266 @@
+"""The MAVLink link to the autopilot: one connection that reconnects when it drops.
+
+Everything MAVLink is here: decoding the autopilot's messages into plain records (SI units, radians, one
+clock), encoding GPS_INPUT and STATUSTEXT, the onboard-controller HEARTBEAT, stream requests. Messages from
+other systems, and bytes that are not MAVLink, are ignored.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+os.environ.setdefault("MAVLINK20", "1")  # SIM_STATE's lat_int/lon_int are MAVLink 2 extension fields
+from pymavlink import mavutil  # noqa: E402
+
+from auxgps.core.gps_output import GpsOutput  # noqa: E402
+
+log = logging.getLogger(__name__)
+mav = mavutil.mavlink
+G_M_S2 = 9.80665
+
+#: Streams auxgps asks for, message id -> rate (Hz).
+STREAMS_HZ = {
+    mav.MAVLINK_MSG_ID_ATTITUDE: 50.0,
+    mav.MAVLINK_MSG_ID_SCALED_IMU: 50.0,
+    mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0,
+    mav.MAVLINK_MSG_ID_GPS_RAW_INT: 5.0,
+    mav.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
+    mav.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
+}
+SIM_STREAMS_HZ = {mav.MAVLINK_MSG_ID_SIMSTATE: 20.0, mav.MAVLINK_MSG_ID_SIM_STATE: 20.0}
+
+
+@dataclass(frozen=True)
+class Attitude:
+    t_s: float
+    euler_rad: np.ndarray  # roll, pitch, yaw
+
+
+@dataclass(frozen=True)
+class Imu:
+    t_s: float
+    f_body_m_s2: np.ndarray  # specific force, FRD body
+
+
+@dataclass(frozen=True)
+class Gps1:
+    t_s: float
+    fix_type: int
+    satellites: int
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    h_acc_m: float
+
+
+@dataclass(frozen=True)
+class Position:
+    """The autopilot's own estimate (GLOBAL_POSITION_INT)."""
+
+    t_s: float
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    rel_alt_m: float
+
+
+@dataclass(frozen=True)
+class Truth:
+    """A simulator's true pose (SIMSTATE / SIM_STATE). Only the simulated camera may use it."""
+
+    t_s: float
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float | None
+    euler_rad: np.ndarray
+
+
+class BootClock:
+    """Maps the autopilot's boot-time stamps onto this process's monotonic clock.
+
+    The offset is the smallest (arrival - stamp) seen: the message that travelled fastest.
+    """
+
+    def __init__(self) -> None:
+        self._offset: float | None = None
+
+    def to_local(self, time_boot_ms: int, arrival_s: float) -> float:
+        offset = arrival_s - time_boot_ms / 1000.0
+        if self._offset is None or offset < self._offset:
+            self._offset = offset
+        return time_boot_ms / 1000.0 + self._offset
+
+
+def decode(msg, clock: BootClock, arrival_s: float):
+    """One autopilot message -> a record, or None for messages auxgps does not use."""
+    kind = msg.get_type()
+    if kind == "ATTITUDE":
+        return Attitude(clock.to_local(msg.time_boot_ms, arrival_s), np.array([msg.roll, msg.pitch, msg.yaw]))
+    if kind == "SCALED_IMU":
+        acc = np.array([msg.xacc, msg.yacc, msg.zacc], float) * G_M_S2 / 1000.0  # milli-g -> m/s^2
+        return Imu(clock.to_local(msg.time_boot_ms, arrival_s), acc)
+    if kind == "GPS_RAW_INT":
+        h_acc = msg.h_acc / 1000.0 if getattr(msg, "h_acc", 0) else (msg.eph / 100.0 if msg.eph != 65535 else 99.0)
+        return Gps1(arrival_s, msg.fix_type, msg.satellites_visible, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, h_acc)
+    if kind == "GLOBAL_POSITION_INT":
+        t = clock.to_local(msg.time_boot_ms, arrival_s)
+        return Position(t, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, msg.relative_alt / 1000.0)
+    if kind == "SIM_STATE":
+        lat = msg.lat_int / 1e7 if getattr(msg, "lat_int", 0) else msg.lat
+        lon = msg.lon_int / 1e7 if getattr(msg, "lon_int", 0) else msg.lon
+        return Truth(arrival_s, lat, lon, float(msg.alt), np.array([msg.roll, msg.pitch, msg.yaw]))
+    if kind == "SIMSTATE":
+        return Truth(arrival_s, msg.lat / 1e7, msg.lng / 1e7, None, np.array([msg.roll, msg.pitch, msg.yaw]))
+    return None
+
+
+class MavLink:
+    """A MAVLink connection (pymavlink URL: ``tcp:HOST:PORT``, ``udpin:HOST:PORT``, ``/dev/ttyX,57600``).
+
+    A reader thread decodes messages from the autopilot (the first system whose HEARTBEAT says ArduPilot)
+    and hands records to ``on_record``; when the link is silent for ``timeout_s`` or fails, it reconnects.
+    """
+
+    def __init__(self, url: str, on_record: Callable[[object], None], *, sim: bool = False, timeout_s: float = 3.0,
+                 source_system: int = 1, source_component: int = mav.MAV_COMP_ID_ONBOARD_COMPUTER) -> None:
+        self.url = url
+        self.on_record = on_record
+        self.sim = sim
+        self.timeout_s = timeout_s
+        self.source_system, self.source_component = source_system, source_component
+        self.target_system: int | None = None
+        self.clock = BootClock()
+        self.connected = threading.Event()
+        self.reconnects = 0
+        self._conn = None
+        self._send_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+
+    # -- lifecycle ------------------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        for target in (self._read_loop, self._heartbeat_loop):
+            th = threading.Thread(target=target, daemon=True, name=f"mavlink-{target.__name__}")
+            th.start()
+            self._threads.append(th)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._close()
+        for th in self._threads:
+            th.join(timeout=2.0)
+
+    def _open(self) -> bool:
+        try:
+            self._conn = mavutil.mavlink_connection(
+                self.url, source_system=self.source_system, source_component=self.source_component, autoreconnect=False
+            )
+        except OSError as err:
+            log.info("link %s not available (%s); retrying", self.url, err)
+            self._conn = None
+            return False
+        self.target_system = None
+        return True
+
+    def _close(self) -> None:
+        conn, self._conn = self._conn, None
+        self.connected.clear()
+        if conn is not None:
+            try:
+                conn.close()
+            except OSError:
+                pass
+
+    # -- reading --------------------------------------------------------------------------------------------
+
+    def _read_loop(self) -> None:
+        backoff = 0.2
+        while not self._stop.is_set():
+            if self._conn is None:
+                if not self._open():
+                    self._stop.wait(backoff)
+                    backoff = min(backoff * 2, 2.0)
+                    continue
+                backoff = 0.2
+            last_rx = time.monotonic()
+            while not self._stop.is_set() and self._conn is not None:
+                try:
+                    msg = self._conn.recv_match(blocking=True, timeout=0.2)
+                except (OSError, ConnectionError) as err:
+                    log.warning("link %s failed: %s; reconnecting", self.url, err)
+                    break
+                now = time.monotonic()
+                if msg is None:
+                    if now - last_rx > self.timeout_s:
+                        log.warning("link %s silent for %.1f s; reconnecting", self.url, now - last_rx)
+                        break
+                    continue
+                last_rx = now
+                self._handle(msg, now)
+            self._close()
+            if not self._stop.is_set():
+                self.reconnects += 1
+
+    def _handle(self, msg, now: float) -> None:
+        kind = msg.get_type()
+        if kind == "BAD_DATA":
+            return
+        src = msg.get_srcSystem()
+        if kind == "HEARTBEAT" and self.target_system is None and msg.autopilot == mav.MAV_AUTOPILOT_ARDUPILOTMEGA:
+            self.target_system = src
+            self.connected.set()
+            self.request_streams()
+            log.info("autopilot is system %d on %s", src, self.url)
+            return
+        if src != self.target_system:
+            return  # another system on the link
+        try:
+            record = decode(msg, self.clock, now)
+        except (AttributeError, TypeError, ValueError) as err:
+            log.warning("could not decode %s: %s", kind, err)
+            return
+        if record is not None:
+            self.on_record(record)
+
+    # -- writing --------------------------------------------------------------------------------------------
+
+    def _send(self, build: Callable) -> bool:
+        conn = self._conn
+        if conn is None:
+            return False
+        try:
+            with self._send_lock:
+                conn.mav.send(build(conn.mav))
+            return True
+        except (OSError, ConnectionError) as err:
+            log.warning("send on %s failed: %s", self.url, err)
+            return False
+
+    def _heartbeat_loop(self) -> None:
+        while not self._stop.wait(1.0):
+            self._send(lambda m: m.heartbeat_encode(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE))
+
+    def request_streams(self) -> None:
+        streams = dict(STREAMS_HZ, **(SIM_STREAMS_HZ if self.sim else {}))
+        for msg_id, hz in streams.items():
+            self._send(lambda m, i=msg_id, h=hz: m.command_long_encode(
+                self.target_system or 1, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0, i, 1e6 / h, 0, 0, 0, 0, 0))
+
+    def send_gps_input(self, out: GpsOutput, time_usec: int) -> bool:
+        ignore = 0  # every field is real; velocity included (ArduPilot issue 19633)
+        return self._send(lambda m: m.gps_input_encode(
+            time_usec, 1, ignore, out.time_week_ms, out.time_week, out.fix_type,
+            int(round(out.lat_deg * 1e7)), int(round(out.lon_deg * 1e7)), float(out.alt_amsl_m),
+            float(out.hdop), float(out.vdop), *(float(v) for v in out.vel_ned_m_s),
+            float(out.speed_accuracy_m_s), float(out.horiz_accuracy_m), float(out.vert_accuracy_m), int(out.satellites), 0))
+
+    def send_statustext(self, text: str, severity: int = mav.MAV_SEVERITY_INFO) -> bool:
+        return self._send(lambda m: m.statustext_encode(severity, text[:50].encode("ascii", "replace")))
