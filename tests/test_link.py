@@ -1,0 +1,66 @@
+"""The MAVLink edge: decoding into SI records on one clock, and GPS_INPUT encoding as ArduPilot reads it."""
+
+import os
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
+
+from auxgps.core.gps_output import GpsOutput  # noqa: E402
+from auxgps.io.link import Attitude, BootClock, Gps1, Imu, Truth, decode  # noqa: E402
+
+M = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+
+
+def roundtrip(msg):
+    """Encode and parse again, as the link would receive it."""
+    buf = msg.pack(M)
+    parser = mavlink.MAVLink(None)
+    return parser.parse_char(buf)
+
+
+def test_boot_clock_takes_the_fastest_message():
+    clock = BootClock()
+    assert clock.to_local(1000, 50.3) == pytest.approx(50.3)
+    assert clock.to_local(2000, 51.1) == pytest.approx(51.1)  # faster: offset 49.1 from now on
+    assert clock.to_local(3000, 52.5) == pytest.approx(52.1)  # a late arrival keeps its true time
+
+
+def test_scaled_imu_is_specific_force_in_m_s2():
+    rec = decode(roundtrip(M.scaled_imu_encode(1000, 10, -20, -1000, 0, 0, 0, 0, 0, 0, 0)), BootClock(), 10.0)
+    assert isinstance(rec, Imu)
+    assert np.allclose(rec.f_body_m_s2, [0.0980665, -0.196133, -9.80665])
+
+
+def test_attitude_gps_and_sim_state():
+    clock = BootClock()
+    att = decode(roundtrip(M.attitude_encode(500, 0.1, -0.2, 3.0, 0, 0, 0)), clock, 5.0)
+    assert isinstance(att, Attitude) and np.allclose(att.euler_rad, [0.1, -0.2, 3.0], atol=1e-6)
+    gps = decode(roundtrip(M.gps_raw_int_encode(0, 3, 473977420, 85455940, 503000, 80, 100, 0, 0, 9)), clock, 6.0)
+    assert isinstance(gps, Gps1) and gps.lat_deg == pytest.approx(47.397742) and gps.alt_amsl_m == pytest.approx(503.0)
+    assert gps.satellites == 9 and gps.fix_type == 3
+    sim = M.sim_state_encode(1, 0, 0, 0, 0.05, -0.02, 1.0, 0, 0, 0, 0, 0, 0, 4.7e8, 8.5e7, 503.5, 0, 0, 0, 0, 0, 473977420, 85455940)
+    truth = decode(roundtrip(sim), clock, 7.0)
+    assert isinstance(truth, Truth) and truth.lat_deg == pytest.approx(47.397742) and truth.alt_amsl_m == pytest.approx(503.5)
+
+
+def test_gps_input_fields_as_ardupilot_reads_them():
+    from auxgps.io.link import MavLink
+
+    sent = []
+
+    class FakeConn:
+        mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
+
+    link = MavLink("tcp:127.0.0.1:1", lambda r: None)
+    link._conn = FakeConn()
+    FakeConn.mav.send = lambda m: sent.append(m)
+    out = GpsOutput(2446, 86418000, 3, 47.397742, 8.545594, 503.25, np.array([1.0, -0.5, 0.1]), 0.12, 0.2, 0.05, 0.5, 0.5, 6)
+    assert link.send_gps_input(out, 1795392000000000)
+    msg = roundtrip(sent[0])
+    assert msg.get_type() == "GPS_INPUT" and msg.gps_id == 1 and msg.ignore_flags == 0
+    assert (msg.lat, msg.lon) == (473977420, 85455940) and msg.alt == pytest.approx(503.25)
+    assert (msg.time_week, msg.time_week_ms, msg.fix_type, msg.satellites_visible) == (2446, 86418000, 3, 6)
+    assert (msg.vn, msg.ve) == pytest.approx((1.0, -0.5)) and msg.horiz_accuracy == pytest.approx(0.12)
