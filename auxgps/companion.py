@@ -200,11 +200,12 @@ class Companion:
     # -- frames (main thread) -------------------------------------------------------------------------------
 
     def _process(self, frame) -> None:
-        feats = self.detector.detect(frame.image_bgr)
         with self._lock:
             if not self._attitudes or self._rel_alt_m is None or self.filter is None:
                 return
             R = R_ned_body_from_euler(*self._attitude_at(frame.t_s))
+        feats = self.detector.detect(frame.image_bgr, R @ self.R_body_cam)
+        with self._lock:
             alt = self._rel_alt_m
             prior = self.filter.prior(frame.t_s)
             mapping = self.supervisor.gps1_trusted and self._gps1_ned is not None

@@ -66,6 +66,7 @@ class DetectorConfig:
     edge_threshold_px: Annotated[int, Field(ge=1, le=200)] = 16
     min_harris: float = 0.0  # keypoints at or below this Harris score lie on edges, not corners
     subpixel_window_px: Annotated[int, Field(ge=0, le=15)] = 2  # half-size of the corner refinement window; 0: off
+    north_aligned: bool = True  # descriptors oriented to north with the autopilot's heading, not per keypoint
 
 
 @dataclass(config=_STRICT, frozen=True)
@@ -108,7 +109,7 @@ class PositioningConfig:
     max_seeds: Annotated[int, Field(ge=1)] = 300
     max_tracking_search_m: Positive = 1.5  # a prior looser than this (3 sigma, m) means acquisition
     min_search_radius_m: NonNegative = 1.0
-    prior_rival_ratio: Annotated[float, Field(gt=0, le=1)] = 0.5
+    rival_min_share: Annotated[float, Field(gt=0, le=1)] = 0.3  # rivals with less support are not weighed
     max_speed_m_s: Positive = 5.0
     footprint_margin_m: NonNegative = 2.0
 

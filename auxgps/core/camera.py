@@ -92,7 +92,8 @@ class PinholeCamera:
             )[0].reshape(-1, 2)
         else:
             uv = xy * np.array([self.K[0, 0], self.K[1, 1]]) + self.K[:2, 2]
-            uv = uv + np.column_stack([xy[:, 1] * self.K[0, 1], np.zeros(len(xy))])
+            if self.K[0, 1] != 0.0:
+                uv[:, 0] += xy[:, 1] * self.K[0, 1]
         uv[~in_front] = np.nan
         return uv, in_front
 

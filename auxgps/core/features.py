@@ -46,8 +46,11 @@ class FeatureDetector:
             fastThreshold=cfg.fast_threshold,
         )
 
-    def detect(self, image: np.ndarray) -> "Features":
-        feats = detect(self.orb, image, self.cfg.min_harris)
+    def detect(self, image: np.ndarray, R_ned_cam: np.ndarray | None = None) -> "Features":
+        """Features of ``image``. With the camera's attitude ``R_ned_cam`` (and ``north_aligned`` set), every
+        descriptor is taken in the direction of north instead of the keypoint's own orientation."""
+        angle = north_angle_deg(R_ned_cam) if (self.cfg.north_aligned and R_ned_cam is not None) else None
+        feats = detect(self.orb, image, self.cfg.min_harris, angle)
         if self.cfg.subpixel_window_px > 0 and len(feats):
             feats = refine_subpixel(to_gray(image), feats, self.cfg.subpixel_window_px)
         return feats
@@ -67,11 +70,20 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     raise FrameError(f"frame has shape {image.shape}, expected (H, W) or (H, W, 3)")
 
 
-def detect(detector: cv2.ORB, image: np.ndarray, min_harris: float = 0.0) -> Features:
+def north_angle_deg(R_ned_cam: np.ndarray) -> float:
+    """Direction of north in the image (OpenCV keypoint angle, degrees) for a camera with attitude ``R_ned_cam``."""
+    north_cam = np.asarray(R_ned_cam, float).T @ np.array([1.0, 0.0, 0.0])
+    return float(np.degrees(np.arctan2(north_cam[1], north_cam[0])) % 360.0)
+
+
+def detect(detector: cv2.ORB, image: np.ndarray, min_harris: float = 0.0, angle_deg: float | None = None) -> Features:
     """Detect and describe point features. An empty or featureless frame gives empty :class:`Features`.
 
     Keypoints whose Harris score is not above ``min_harris`` are dropped: a negative score marks a point on a
-    straight edge, which slides along the edge from view to view and is no point landmark.
+    straight edge, which slides along the edge from view to view and is no point landmark. With ``angle_deg``,
+    descriptors are computed at that orientation rather than each keypoint's own: the autopilot knows the
+    heading, and a descriptor aligned to north tells apart the four alike corners of a cube, which
+    rotation-invariant ones cannot.
     """
     gray = to_gray(image)
     if gray.size == 0:
@@ -79,6 +91,9 @@ def detect(detector: cv2.ORB, image: np.ndarray, min_harris: float = 0.0) -> Fea
     keypoints = [kp for kp in detector.detect(gray, None) if kp.response > min_harris]
     if not keypoints:
         return Features.empty()
+    if angle_deg is not None:
+        for kp in keypoints:
+            kp.angle = angle_deg
     keypoints, descriptors = detector.compute(gray, keypoints)
     if descriptors is None or not keypoints:
         return Features.empty()

@@ -59,6 +59,15 @@ class NoFix:
 LocateResult = Fix | NoFix
 
 
+def _prior_weight(reading, prior: PositionPrior | None) -> float:
+    """exp(-d^2 / 2 s^2): how likely a reading's position is under the prior (1 without one)."""
+    if prior is None:
+        return 1.0
+    d2 = float(np.sum((reading.p[:2] - prior.p_ned_m[:2]) ** 2))
+    s2 = prior.sigma_h_m**2 + float(np.trace(reading.cov[:2, :2])) / 2.0
+    return float(np.exp(-0.5 * d2 / s2))
+
+
 @dataclass(frozen=True)
 class _Correspondences:
     """Feature-landmark pairs of one frame and what each implies: ``hyp`` (K, 2) the camera's north/east if
@@ -183,6 +192,8 @@ class Localiser:
             return NoFix(t_s, verdict, n_inl, n_corr, n_feat)
         p, cov, inl = verdict.p, verdict.cov, verdict.inl
         n_inl = int(inl.sum())
+        if n_inl < min_inliers:
+            return NoFix(t_s, f"the likelier reading has {n_inl} inliers", n_inl, n_corr, n_feat)
         share = verdict.score / max(n_inl, 1)
         if not tracking and share < cfg.min_explained_acquire:
             return NoFix(t_s, f"acquisition: {share:.0%} of the landmarks expected in view are seen", n_inl, n_corr, n_feat)
@@ -191,33 +202,30 @@ class Localiser:
     # -- steps -------------------------------------------------------------------------------------------------
 
     def _against_rival(self, winner: _Reading, corr: _Correspondences, view: _View, prior, best_support: int, ratio: float):
-        """The winner, or the rival if it scores higher, or a reason (str) why the frame is ambiguous.
+        """The winner, or the rival if it is more probable, or a reason (str) why the frame is ambiguous.
 
         Second round without everything the winner explains: a rival position nearly as well supported (the
         same features taken for other landmarks, as with a corner matched to the wrong one of identical cubes)
-        makes the frame ambiguous. Each is scored by its inliers times the share of the landmarks it puts inside
-        the image that do have a feature there: a wrong position predicts corners on bare ground. And a winner
-        off the prediction, with a fair rival on it, is the map's symmetry choosing, not the evidence.
+        makes the frame ambiguous. Each reading is scored by its inliers, times the share of the landmarks it
+        puts inside the image that do have a feature there (a wrong position predicts corners on bare ground),
+        times, with a prior, how likely its position is under the prior: with a symmetric object, the prediction
+        and not the map's symmetry must choose.
         """
         cfg = self.cfg.positioning
-        weakest = min(ratio, cfg.prior_rival_ratio) if prior is not None else ratio
         rest = np.linalg.norm(corr.hyp - winner.p[:2], axis=1) > 2.0 * corr.tau
         if np.count_nonzero(rest) < 2:
             return winner
         others = corr.subset(rest)
         r_seeds, r_support, r_members = self._consensus(others, len(view.features))
         rb = int(np.argmax(r_support))
-        if r_support[rb] < max(2.0, weakest * best_support):
+        if r_support[rb] < max(2.0, cfg.rival_min_share * best_support):
             return winner
         rival = self._reading(others, view, r_members[rb], r_seeds[rb])
-        if rival.score > winner.score:
-            winner, rival = rival, winner
-        if rival.score >= ratio * winner.score:
-            return f"ambiguous: rival scores {rival.score:.1f} against {winner.score:.1f}"
-        if prior is not None and rival.score >= cfg.prior_rival_ratio * winner.score:
-            lim = 3.0 * np.sqrt(prior.sigma_h_m**2 + np.trace(winner.cov[:2, :2]) / 2.0)
-            if np.linalg.norm(winner.p[:2] - prior.p_ned_m[:2]) > lim >= np.linalg.norm(rival.p[:2] - prior.p_ned_m[:2]):
-                return f"ambiguous: the winner is off the prediction, a rival ({rival.score:.1f} against {winner.score:.1f}) is on it"
+        w_score, r_score = winner.score * _prior_weight(winner, prior), rival.score * _prior_weight(rival, prior)
+        if r_score > w_score:
+            winner, rival, w_score, r_score = rival, winner, r_score, w_score
+        if r_score >= ratio * w_score:
+            return f"ambiguous: rival scores {r_score:.2f} against {w_score:.2f}"
         return winner
 
     def _reading(self, corr: _Correspondences, view: _View, member_row: np.ndarray, seed: int) -> _Reading:

@@ -95,7 +95,8 @@ class Mapper:
             self.map.observe(matched_lm, A, b, features.descriptors[matched_feat], d[:, 2].astype(np.float16), chi2)
             ids_out[matched_feat] = matched_lm
 
-        # Unmatched features become new landmarks on the ground plane, with a loose height prior.
+        # Unmatched features become new landmarks on the ground plane, their height free within a few metres
+        # (initial_height_sigma_m) until views from elsewhere fix it.
         new = np.setdiff1d(np.arange(n), matched_feat)
         p0, valid = intersect_rays_with_horizontal_plane(c, rays[new], 0.0)
         new, p0 = new[valid], p0[valid]

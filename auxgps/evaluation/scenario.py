@@ -102,7 +102,7 @@ def _map_flight(su: _Setup, alt_m: float, fps: float, progress) -> tuple[np.ndar
         tel = sense(traj, i, sim.noise, su.rng_tel)
         nav = NavSample(tel.t_s, tel.p_gps_ned_m, tel.alt_m, tel.R_ned_body)
         t0 = time.perf_counter()
-        feats = su.detector.detect(frame.image_bgr)
+        feats = su.detector.detect(frame.image_bgr, tel.R_ned_body @ su.R_body_cam)
         result = su.mapper.process(feats, nav)
         mapping_ms.append((time.perf_counter() - t0) * 1e3)
         fed = np.flatnonzero(result.landmark_ids >= 0)
@@ -171,7 +171,7 @@ def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: Pipeli
             if blackout[0] is not None and blackout[0] <= t < blackout[1]:
                 image = np.zeros_like(image)  # the camera is blinded
             t0 = time.perf_counter()
-            feats = su.detector.detect(image)
+            feats = su.detector.detect(image, tel.R_ned_body @ su.R_body_cam)
             res = su.localiser.locate(feats, t, tel.R_ned_body, tel.alt_m, nav.prior(t))
             pos_ms.append((time.perf_counter() - t0) * 1e3)
             n_feat.append(len(feats))

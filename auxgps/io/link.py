@@ -204,7 +204,10 @@ class MavLink:
                         break
                     continue
                 last_rx = now
-                self._handle(msg, now)
+                try:
+                    self._handle(msg, now)
+                except Exception:  # noqa: BLE001 - one bad message or handler bug must not end the link
+                    log.exception("handling %s failed; continuing", msg.get_type())
             self._close()
             if not self._stop.is_set():
                 self.reconnects += 1
@@ -249,7 +252,7 @@ class MavLink:
             self._send(lambda m: m.heartbeat_encode(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE))
 
     def request_streams(self) -> None:
-        streams = dict(STREAMS_HZ, **(SIM_STREAMS_HZ if self.sim else {}))
+        streams = {**STREAMS_HZ, **(SIM_STREAMS_HZ if self.sim else {})}
         for msg_id, hz in streams.items():
             self._send(lambda m, i=msg_id, h=hz: m.command_long_encode(
                 self.target_system or 1, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0, i, 1e6 / h, 0, 0, 0, 0, 0))
