@@ -85,9 +85,17 @@ def _eval(args) -> int:
 
 
 def _demo(args) -> int:
-    args.world, args.altitude, args.runs = str(DEMO_WORLD), 15.0, 1
-    print("auxgps demo: map a thesis world with GPS, then position from the map without it (simulated).")
-    return _eval(args)
+    from auxgps.demo import run_demo
+
+    print("auxgps demo: the vehicle emulator flies a survey over a 4-cube world; GPS1 fails after 60 s; auxgps, a")
+    print("separate process on loopback, keeps the autopilot flying on GPS2. A control run flies without auxgps.")
+    figures = run_demo(str(DEMO_WORLD), out_dir=args.out_dir)
+    print(json.dumps(figures, indent=2))
+    print(f"report: {args.out_dir}/report.png, {args.out_dir}/report.json")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(figures, indent=2))
+    return 0
 
 
 def _run(args) -> int:
@@ -149,8 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=_positive(float), default=10.0, help="GPS_INPUT rate, Hz (default 10)")
     p.set_defaults(func=_run)
 
-    p = sub.add_parser("demo", help="one thesis scenario (4 cubes, 15 m), end to end, with its table")
-    add_eval_options(p)
+    p = sub.add_parser("demo", help="closed loop: the vehicle emulator and auxgps run, GPS1 failing mid-survey")
+    p.add_argument("--out-dir", default="out/demo", help="logs, report.png and report.json go here")
+    p.add_argument("--json", help="also write the figures here")
     p.set_defaults(func=_demo)
     return parser
 

@@ -1,0 +1,134 @@
+"""The closed-loop demo: the vehicle emulator and `auxgps run` as separate processes on loopback.
+
+The emulator flies the survey on GPS1; GPS1 is disabled part-way; the rest of the survey and the return home
+are flown on auxgps's GPS2. A control run without auxgps shows what happens otherwise. The report is a PNG and a
+JSON of the figures. The emulator is a test stand-in, launched as a script from ``tools/``, never imported here.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from auxgps.errors import AuxGpsError
+
+REPO = Path(__file__).resolve().parent.parent
+EMULATOR = REPO / "tools" / "vehicle_emulator.py"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _emulator(world: str, port: int, log: Path, fail_at_s: float, gps2_type: int, max_s: float) -> subprocess.Popen:
+    cmd = [sys.executable, str(EMULATOR), "--world", world, "--port", str(port), "--fail-gps1-at", str(fail_at_s),
+           "--gps2-type", str(gps2_type), "--log", str(log), "--max-seconds", str(max_s)]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def run_demo(world: str, out_dir: str = "out/demo", fail_at_s: float = 60.0, max_s: float = 480.0) -> dict:
+    """Fly the closed loop and the control run at once; return the figures (also written as JSON and PNG)."""
+    if not EMULATOR.exists():
+        raise AuxGpsError(f"the vehicle emulator is not at {EMULATOR}: the demo runs from a checkout of auxgps")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    port, port_ctl = _free_port(), _free_port()
+    emu = _emulator(world, port, out / "emulator.json", fail_at_s, 14, max_s)
+    ctl = _emulator(world, port_ctl, out / "control.json", fail_at_s, 0, max_s)
+    time.sleep(1.0)
+    run = subprocess.Popen(
+        [sys.executable, "-m", "auxgps.cli", "run", "--connect", f"tcp:127.0.0.1:{port}", "--camera", f"sim:{world}",
+         "--log-dir", str(out / "run"), "--duration", str(max_s)],
+        stdout=open(out / "run.log", "w"), stderr=subprocess.STDOUT,
+    )
+    events: queue.Queue[str] = queue.Queue()
+
+    def pump() -> None:  # the emulator's lines, read off the main loop so that the progress bar keeps moving
+        for line in emu.stdout:
+            if ("EMU:" in line or "Failsafe" in line or "GPS" in line) and "PreArm" not in line:
+                events.put(line.strip().split(" INFO ")[-1])
+
+    threading.Thread(target=pump, daemon=True).start()
+    try:
+        with tqdm(total=int(max_s), desc="closed-loop flight", unit="s") as bar:
+            t0 = time.monotonic()
+            while emu.poll() is None and time.monotonic() - t0 < max_s + 30:
+                time.sleep(0.5)
+                while not events.empty():
+                    bar.write("  " + events.get())
+                bar.n = min(int(time.monotonic() - t0), int(max_s))
+                bar.refresh()
+    finally:
+        for p in (run, emu):
+            if p.poll() is None:
+                p.terminate()
+        run.wait(timeout=10)
+        ctl.wait(timeout=max_s + 60)
+    return report(out)
+
+
+def report(out: Path) -> dict:
+    """Figures and a PNG from the emulator's logs of the auxgps run and of the control run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    log = json.loads((out / "emulator.json").read_text())
+    ctl = json.loads((out / "control.json").read_text())
+    s = log["samples"]
+    t = np.array([x["t_s"] for x in s])
+    truth = np.array([x["truth_ned_m"] for x in s])
+    est = np.array([x["estimate_ned_m"] for x in s])
+    fail = log.get("failure_t_s")
+    err = np.linalg.norm(truth[:, :2] - est[:, :2], axis=1)
+    denied = t >= fail if fail is not None else np.zeros(len(t), bool)
+    arrivals = np.array(log.get("gps_input_arrivals_t_s", []))
+    figures = {
+        "landing_error_m": log.get("landing_error_m"),
+        "gps2_switch_s": (log["switch_to_gps2_t_s"] - fail) if fail is not None and log.get("switch_to_gps2_t_s") else None,
+        "gps_input": log.get("gps_input"),
+        "denied_s": float(t[denied][-1] - fail) if denied.any() else 0.0,
+        "horizontal_error_m": {"rms": float(np.sqrt(np.mean(err[denied] ** 2))) if denied.any() else None,
+                               "max": float(err[denied].max()) if denied.any() else None},
+        "exit": log.get("exit_reason"),
+        "control": {"landing_error_m": ctl.get("landing_error_m"), "exit": ctl.get("exit_reason"),
+                    "failsafe": any(e.get("event") == "failsafe" for e in ctl.get("events", []))},
+    }
+    fig, ax = plt.subplots(1, 3, figsize=(16, 5))
+    ax[0].plot(truth[:, 1], truth[:, 0], label="true path")
+    ax[0].plot(est[:, 1], est[:, 0], label="autopilot's estimate", alpha=0.7)
+    if fail is not None:
+        k = int(np.searchsorted(t, fail))
+        ax[0].plot(truth[k, 1], truth[k, 0], "rx", ms=12, label="GPS1 fails")
+    c = ctl["samples"]
+    ax[0].plot([x["truth_ned_m"][1] for x in c], [x["truth_ned_m"][0] for x in c], ":", label="control run (no auxgps)")
+    ax[0].plot(0, 0, "k^", label="home")
+    ax[0].set(xlabel="east (m)", ylabel="north (m)", title="flight", aspect="equal")
+    ax[0].legend(fontsize=8)
+    ax[1].plot(t, err)
+    if fail is not None:
+        ax[1].axvline(fail, color="r", ls="--", label="GPS1 fails")
+    ax[1].set(xlabel="time (s)", ylabel="m", title="autopilot's horizontal error")
+    ax[1].legend()
+    if len(arrivals) > 1:
+        ax[2].plot(arrivals[1:], np.diff(arrivals) * 1000.0, ".", ms=2)
+        ax[2].axhline(215, color="r", ls="--", label="ArduPilot's mean limit 215 ms")
+        ax[2].axhline(245, color="m", ls=":", label="gap limit 245 ms")
+    ax[2].set(xlabel="time (s)", ylabel="ms", title="interval between GPS_INPUT messages")
+    ax[2].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "report.png", dpi=90)
+    (out / "report.json").write_text(json.dumps(figures, indent=2))
+    return figures
