@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from pathlib import Path
 
@@ -104,6 +105,11 @@ def _run(args) -> int:
     from auxgps.companion import Companion, RunOptions
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+    def stop(signum, frame):  # SIGTERM ends the flight like Ctrl-C: logs closed, map saved
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
     opts = RunOptions(
         connect=args.connect,
         camera=args.camera,

@@ -99,6 +99,7 @@ class Companion:
         self._gps1_ned: tuple[float, np.ndarray] | None = None
         self._gps1_sats: int | None = None
         self._last_correction_t: float | None = None
+        self._last_disagreement: str | None = None
         self._stop = threading.Event()
         self.link = MavLink(opts.connect, self._on_record, sim=opts.camera.startswith("sim:"))
         self.camera = open_camera(opts.camera, self.camera_model, self.R_body_cam, truth=lambda: self._truth)
@@ -143,8 +144,9 @@ class Companion:
             est.p_ned_m if est is not None else None,
             est.cov_p_m2[:2, :2] if est is not None else None,
         )
-        if self.supervisor.disagreement:
+        if self.supervisor.disagreement and self.supervisor.disagreement != self._last_disagreement:
             self.log.row("events", t_s=rec.t_s, text=self.supervisor.disagreement)
+        self._last_disagreement = self.supervisor.disagreement
         if not self.supervisor.gps1_trusted:
             self._gps1_sats = None
             return

@@ -36,6 +36,13 @@ def test_jump_is_distrusted_and_named():
     assert not s.gps1_trusted and "disagrees" in s.disagreement
 
 
+def test_small_offsets_are_not_jumps():
+    s = Supervisor()
+    s.gps1(good(0.0), None, None)
+    s.gps1(good(1.0, P + [0.5, 0.0, 0.0]), P, np.eye(2) * 1e-4)  # 0.5 m: latency or noise, not a spoofer
+    assert s.gps1_trusted and s.disagreement is None
+
+
 def test_gps1_rejoins_only_after_agreeing_for_rejoin_s():
     cfg = SupervisorConfig(rejoin_s=10.0)
     s = Supervisor(cfg)

@@ -43,6 +43,7 @@ class SupervisorConfig:
     min_satellites: int = 6
     stale_s: float = 1.0
     agree_chi2: float = 13.8  # 99.9% for 2 degrees of freedom
+    min_jump_m: float = 2.0  # and at least this far apart: a receiver's jump, not latency or noise
     rejoin_s: float = 10.0
     max_sigma_h_m: float = 2.0
     max_fix_age_s: float = 5.0
@@ -83,7 +84,7 @@ class Supervisor:
             d = sample.p_ned_m[:2] - p_est_ned_m[:2]
             S = cov_est_ne_m2 + np.eye(2) * max(sample.h_acc_m, 0.05) ** 2
             m2 = float(d @ np.linalg.solve(S, d))
-            agrees = m2 <= cfg.agree_chi2
+            agrees = m2 <= cfg.agree_chi2 or float(np.linalg.norm(d)) < cfg.min_jump_m
             if not agrees:
                 self.disagreement = f"GPS1 disagrees with auxgps by {np.linalg.norm(d):.1f} m"
         if not (good and agrees):
