@@ -47,3 +47,70 @@ def test_short_flight_lands_home_on_gps2(tmp_path):
     assert (tmp_path / "map.npz").exists()  # saved at the end of the flight, atomically
     events = (tmp_path / "run" / "events.csv").read_text()
     assert "GPS1 lost" in events and "positioning" in events
+
+
+@pytest.mark.slow
+def test_run_reconnects_after_the_autopilot_restarts_and_ignores_noise(tmp_path):
+    """The emulator is killed mid-flight and started again on the same port: auxgps reconnects and the new
+    autopilot gets GPS_INPUT; garbage bytes and another system's messages on the link change nothing."""
+    import time
+
+    port = free_port()
+
+    def emulator(name, seconds):
+        return subprocess.Popen(
+            [sys.executable, str(REPO / "tools" / "vehicle_emulator.py"), "--world", WORLD, "--port", str(port),
+             "--survey-size", "4", "--log", str(tmp_path / name), "--max-seconds", str(seconds)],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )
+
+    first = emulator("first.json", 60)
+    run = subprocess.Popen(
+        [sys.executable, "-m", "auxgps.cli", "run", "--connect", f"tcp:127.0.0.1:{port}", "--camera", f"sim:{WORLD}",
+         "--log-dir", str(tmp_path / "run"), "--duration", "60"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO,
+    )
+    try:
+        time.sleep(12)
+        first.send_signal(2)  # SIGINT: the emulator writes its log and exits; the link drops
+        first.wait(timeout=10)
+        second = emulator("second.json", 15)
+        second.wait(timeout=40)
+    finally:
+        for p in (first, run):
+            if p.poll() is None:
+                p.terminate()
+        run.wait(timeout=20)
+    one = json.loads((tmp_path / "first.json").read_text())
+    two = json.loads((tmp_path / "second.json").read_text())
+    assert len(one["gps_input_arrivals_t_s"]) > 50
+    assert len(two["gps_input_arrivals_t_s"]) > 50  # reconnected and sending again
+    assert two["gps_input"]["consecutive_gaps_over_245ms"] == 0
+
+
+def test_link_ignores_garbage_and_other_systems():
+    """Decoding straight from bytes: noise between messages, and a second vehicle's messages, are dropped."""
+    import os
+
+    import numpy as np
+
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from auxgps.io.link import Attitude, MavLink
+
+    got = []
+    link = MavLink("tcp:127.0.0.1:1", got.append)
+    ours, theirs = mavlink.MAVLink(None, srcSystem=1, srcComponent=1), mavlink.MAVLink(None, srcSystem=7, srcComponent=1)
+    hb = ours.heartbeat_encode(2, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0).pack(ours)
+    att = ours.attitude_encode(100, 0.1, 0.2, 0.3, 0, 0, 0).pack(ours)
+    other = theirs.attitude_encode(100, 1.0, 1.0, 1.0, 0, 0, 0).pack(theirs)
+    noise = bytes(b for b in range(256) if b not in (0xFD, 0xFE))  # line noise without a frame start
+    stream = noise + hb + noise + other + noise + att + noise
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    for i in range(len(stream)):
+        msg = parser.parse_char(stream[i : i + 1])
+        if msg is not None:
+            link._handle(msg, 1.0)
+    assert len(got) == 1 and isinstance(got[0], Attitude) and np.allclose(got[0].euler_rad, [0.1, 0.2, 0.3], atol=1e-6)
