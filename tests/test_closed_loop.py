@@ -18,19 +18,26 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def start_emulator(port: int, log: Path, *options: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, str(REPO / "tools" / "vehicle_emulator.py"), "--world", WORLD, "--port", str(port), "--log", str(log), *options],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+
+
+def start_run(port: int, log_dir: Path, *options: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "auxgps.cli", "run", "--connect", f"tcp:127.0.0.1:{port}", "--camera", f"sim:{WORLD}",
+         "--log-dir", str(log_dir), *options],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO,
+    )
+
+
 @pytest.mark.slow
 def test_short_flight_lands_home_on_gps2(tmp_path):
     port = free_port()
-    emu = subprocess.Popen(
-        [sys.executable, str(REPO / "tools" / "vehicle_emulator.py"), "--world", WORLD, "--port", str(port),
-         "--survey-size", "6", "--fail-gps1-at", "20", "--log", str(tmp_path / "emu.json"), "--max-seconds", "150"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )
-    run = subprocess.Popen(
-        [sys.executable, "-m", "auxgps.cli", "run", "--connect", f"tcp:127.0.0.1:{port}", "--camera", f"sim:{WORLD}",
-         "--log-dir", str(tmp_path / "run"), "--duration", "150", "--save-map", str(tmp_path / "map.npz")],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO,
-    )
+    emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "6", "--fail-gps1-at", "20", "--max-seconds", "150")
+    run = start_run(port, tmp_path / "run", "--duration", "150", "--save-map", str(tmp_path / "map.npz"))
     try:
         emu.wait(timeout=170)
     finally:
@@ -58,18 +65,10 @@ def test_run_reconnects_after_the_autopilot_restarts_and_ignores_noise(tmp_path)
     port = free_port()
 
     def emulator(name, seconds):
-        return subprocess.Popen(
-            [sys.executable, str(REPO / "tools" / "vehicle_emulator.py"), "--world", WORLD, "--port", str(port),
-             "--survey-size", "4", "--log", str(tmp_path / name), "--max-seconds", str(seconds)],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        )
+        return start_emulator(port, tmp_path / name, "--survey-size", "4", "--max-seconds", str(seconds))
 
     first = emulator("first.json", 60)
-    run = subprocess.Popen(
-        [sys.executable, "-m", "auxgps.cli", "run", "--connect", f"tcp:127.0.0.1:{port}", "--camera", f"sim:{WORLD}",
-         "--log-dir", str(tmp_path / "run"), "--duration", "60"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO,
-    )
+    run = start_run(port, tmp_path / "run", "--duration", "60")
     try:
         time.sleep(12)
         first.send_signal(2)  # SIGINT: the emulator writes its log and exits; the link drops
