@@ -95,6 +95,7 @@ class Companion:
         self._attitudes: deque[Attitude] = deque(maxlen=200)
         self._truth: Truth | None = None
         self._rel_alt_m: float | None = None
+        self._rel_alt_raw_m: float | None = None
         self._home_alt_amsl_m: float | None = None
         self._gps1_ned: tuple[float, np.ndarray] | None = None
         self._gps1_sats: int | None = None
@@ -123,12 +124,9 @@ class Companion:
                 self._truth = rec
 
     def _on_position(self, rec: Position) -> None:
-        if self._home_alt_amsl_m is None and np.isfinite(rec.alt_amsl_m):
-            self._home_alt_amsl_m = rec.alt_amsl_m - rec.rel_alt_m
-        if self.frame is None and self._home_alt_amsl_m is not None and rec.lat_deg != 0.0:
-            # No map: the local frame is anchored at home, on the ground.
-            self.frame = LocalFrame(rec.lat_deg, rec.lon_deg, self._home_alt_amsl_m)
-            log.info("local frame anchored at %.7f, %.7f, %.1f m", rec.lat_deg, rec.lon_deg, self._home_alt_amsl_m)
+        self._rel_alt_raw_m = rec.rel_alt_m
+        if self.frame is not None and self._home_alt_amsl_m is None:
+            self._home_alt_amsl_m = self.frame.alt_amsl_m  # a loaded map's origin: heights are above it
         if self.frame is not None and self._home_alt_amsl_m is not None:
             self._rel_alt_m = rec.rel_alt_m + (self._home_alt_amsl_m - self.frame.alt_amsl_m)
             if self.filter is not None:
@@ -136,7 +134,14 @@ class Companion:
 
     def _on_gps1(self, rec: Gps1) -> None:
         if self.frame is None:
-            return
+            # No map: anchor the local frame at the first 3D fix, on the ground below it (the autopilot's height
+            # above home says how far up it is). Not at the autopilot's own position: before its EKF has an
+            # origin, GLOBAL_POSITION_INT's altitude reads 0.
+            if rec.fix_type < 3 or self._rel_alt_raw_m is None:
+                return
+            self.frame = LocalFrame(rec.lat_deg, rec.lon_deg, rec.alt_amsl_m - self._rel_alt_raw_m)
+            self._home_alt_amsl_m = self.frame.alt_amsl_m
+            log.info("local frame anchored at %.7f, %.7f, %.1f m AMSL", rec.lat_deg, rec.lon_deg, self.frame.alt_amsl_m)
         p = self.frame.to_ned(lat_deg=rec.lat_deg, lon_deg=rec.lon_deg, alt_amsl_m=rec.alt_amsl_m)
         est = self.filter.estimate() if self.filter is not None else None
         self.supervisor.gps1(
