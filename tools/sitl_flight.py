@@ -1,0 +1,159 @@
+#!/usr/bin/env python3
+"""Fly ArduPilot's own copter SITL through a GPS1 failure with auxgps as GPS2, and report the landing.
+
+    ARDUPILOT_SITL=../shared/sitl/arducopter .venv/bin/python tools/sitl_flight.py [--world W] [--out DIR]
+
+Starts SITL in a scratch folder (its defaults file beside the binary, plus config/ardupilot/auxgps-gps2.parm),
+connects a ground-station script on SERIAL0 (TCP 5760) and `auxgps run` on SERIAL1 (TCP 5762) with the world
+rendered at SIM_STATE's truth. The script arms in GUIDED, takes off to 15 m, flies a lawnmower of 10 legs over the
+world, disables GPS1 (SIM_GPS1_ENABLE = 0) after the third leg, finishes the legs, switches to RTL and waits for
+the landing. Prints one JSON line: landing_error_m (true distance from home), denied_s, the autopilot's
+horizontal error after the failure (rms, max), and whether GPS2 carried a 3D fix. Exit 0 if it landed within 1 m.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("MAVLINK20", "1")
+import pymap3d  # noqa: E402
+from pymavlink import mavutil  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+M = mavutil.mavlink
+LEGS_NE_M = [(-8, -8), (8, -8), (8, -4), (-8, -4), (-8, 0), (8, 0), (8, 4), (-8, 4), (-8, 8), (8, 8)]
+
+
+class GroundStation:
+    def __init__(self, home):
+        self.home = home
+        self.c = mavutil.mavlink_connection("tcp:127.0.0.1:5760", source_system=255)
+        self.c.wait_heartbeat(timeout=60)
+        for mid, hz in ((33, 10), (108, 10), (24, 5), (124, 5)):
+            self.c.mav.command_long_send(1, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, mid, 1e6 / hz, 0, 0, 0, 0, 0)
+        self.last = {}
+
+    def pump(self, seconds):
+        t_end = time.time() + seconds
+        while time.time() < t_end:
+            msg = self.c.recv_match(blocking=True, timeout=0.2)
+            if msg is None:
+                continue
+            if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() != M.MAV_COMP_ID_AUTOPILOT1:
+                continue  # auxgps's own heartbeat, forwarded by the autopilot
+            self.last[msg.get_type()] = msg
+            if msg.get_type() == "STATUSTEXT" and "Arm" not in msg.text:
+                print("AP:", msg.text, file=sys.stderr, flush=True)
+
+    def ne(self, lat_deg, lon_deg):
+        n, e, _ = pymap3d.geodetic2ned(lat_deg, lon_deg, self.home[2], *self.home)
+        return float(n), float(e)
+
+    def truth(self):
+        s = self.last.get("SIM_STATE")
+        return None if s is None else self.ne(s.lat_int / 1e7, s.lon_int / 1e7)
+
+    def estimate(self):
+        g = self.last.get("GLOBAL_POSITION_INT")
+        return None if g is None else self.ne(g.lat / 1e7, g.lon / 1e7)
+
+    def armed(self):
+        hb = self.last.get("HEARTBEAT")
+        return bool(hb and hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+def fly(gs: GroundStation) -> dict:
+    t0 = time.time()
+    while not gs.armed():
+        if time.time() - t0 > 180:
+            raise RuntimeError("SITL would not arm within 180 s")
+        gs.c.set_mode("GUIDED")
+        gs.c.mav.command_long_send(1, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        gs.pump(3)
+    gs.c.mav.command_long_send(1, 1, M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 15)
+    gs.pump(20)
+    failed_at, errors, gps2_fixes = None, [], set()
+    for i, (n, e) in enumerate(LEGS_NE_M):
+        lat, lon, _ = pymap3d.ned2geodetic(n, e, 0, *gs.home)
+        gs.c.mav.set_position_target_global_int_send(
+            0, 1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 0b110111111000, int(lat * 1e7), int(lon * 1e7), 15, 0, 0, 0, 0, 0, 0, 0, 0)
+        t_leg = time.time()
+        while time.time() - t_leg < 25:
+            gs.pump(0.5)
+            tr, es = gs.truth(), gs.estimate()
+            if failed_at and tr and es:
+                errors.append(math.dist(tr, es))
+                g2 = gs.last.get("GPS2_RAW")
+                gps2_fixes.add(g2.fix_type if g2 else None)
+            if tr and math.dist(tr, (n, e)) < 0.7:
+                break
+        if i == 2:
+            gs.c.mav.param_set_send(1, 1, b"SIM_GPS1_ENABLE", 0, M.MAV_PARAM_TYPE_REAL32)
+            failed_at = time.time()
+    gs.c.set_mode("RTL")
+    t_rtl = time.time()
+    while time.time() - t_rtl < 120:
+        gs.pump(1)
+        tr, es = gs.truth(), gs.estimate()
+        if tr and es:
+            errors.append(math.dist(tr, es))
+        if not gs.armed() and time.time() - t_rtl > 5:
+            break
+    return {
+        "landed": not gs.armed(),
+        "landing_error_m": round(math.hypot(*gs.truth()), 3),
+        "denied_s": round(time.time() - failed_at, 1),
+        "error_after_failure_m": {"rms": round(math.sqrt(sum(x * x for x in errors) / len(errors)), 3), "max": round(max(errors), 3)},
+        "gps2_fix_types_seen": sorted(x for x in gps2_fixes if x is not None),
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sitl", default=os.environ.get("ARDUPILOT_SITL"))
+    ap.add_argument("--world", default=str(REPO / "config" / "worlds" / "cubes4_0.5m_different.yaml"))
+    ap.add_argument("--out", default=str(REPO / "out" / "sitl"))
+    args = ap.parse_args(argv)
+    if not args.sitl or not Path(args.sitl).exists():
+        print("no SITL binary: set ARDUPILOT_SITL or --sitl", file=sys.stderr)
+        return 2
+    sys.path.insert(0, str(REPO))
+    from auxgps.sim.world import load_world
+
+    origin = load_world(args.world).frame
+    home = (origin.lat_deg, origin.lon_deg, origin.alt_amsl_m)
+    defaults = ",".join(str(p) for p in (Path(args.sitl).parent / "copter.parm", REPO / "config" / "ardupilot" / "auxgps-gps2.parm") if p.exists())
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scratch = tempfile.mkdtemp(prefix="sitl-")
+    sitl = subprocess.Popen([args.sitl, "--model", "quad", "--speedup", "1", "-I0", "--defaults", defaults,
+                             "--home", f"{home[0]},{home[1]},{home[2]},0"], cwd=scratch,
+                            stdout=open(out / "sitl.log", "w"), stderr=subprocess.STDOUT)
+    run = None
+    try:
+        time.sleep(2)
+        gs = GroundStation(home)
+        run = subprocess.Popen([sys.executable, "-m", "auxgps.cli", "run", "--connect", "tcp:127.0.0.1:5762",
+                                "--camera", f"sim:{args.world}", "--log-dir", str(out / "run"), "--duration", "900"],
+                               cwd=REPO, stdout=open(out / "run.log", "w"), stderr=subprocess.STDOUT)
+        result = fly(gs)
+    finally:
+        for p in (run, sitl):
+            if p is not None and p.poll() is None:
+                p.terminate()
+                p.wait(timeout=20)
+    print(json.dumps(result))
+    (out / "result.json").write_text(json.dumps(result, indent=2))
+    return 0 if result["landed"] and result["landing_error_m"] <= 1.0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
