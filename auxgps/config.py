@@ -110,7 +110,6 @@ class PositioningConfig:
     max_tracking_search_m: Positive = 1.5  # a prior looser than this (3 sigma, m) means acquisition
     min_search_radius_m: NonNegative = 1.0
     rival_min_share: Annotated[float, Field(gt=0, le=1)] = 0.3  # rivals with less support are not weighed
-    max_speed_m_s: Positive = 5.0
     footprint_margin_m: NonNegative = 2.0
 
 

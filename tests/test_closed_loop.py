@@ -33,6 +33,16 @@ def start_run(port: int, log_dir: Path, *options: str) -> subprocess.Popen:
     )
 
 
+def stop(*procs: subprocess.Popen | None) -> None:
+    """Terminate whatever is still running and reap it."""
+    for p in procs:
+        if p is not None and p.poll() is None:
+            p.terminate()
+    for p in procs:
+        if p is not None:
+            p.wait(timeout=20)
+
+
 @pytest.mark.slow
 def test_short_flight_lands_home_on_gps2(tmp_path):
     port = free_port()
@@ -41,10 +51,7 @@ def test_short_flight_lands_home_on_gps2(tmp_path):
     try:
         emu.wait(timeout=170)
     finally:
-        for p in (emu, run):
-            if p.poll() is None:
-                p.terminate()
-        run.wait(timeout=20)
+        stop(emu, run)
     log = json.loads((tmp_path / "emu.json").read_text())
     assert log["exit_reason"] == "landed"
     assert log["switch_to_gps2_t_s"] - log["failure_t_s"] <= 1.0
@@ -72,6 +79,7 @@ def test_run_reconnects_after_the_autopilot_restarts_and_ignores_noise(tmp_path)
 
     first = emulator("first.json", 60)
     run = start_run(port, tmp_path / "run", "--duration", "60")
+    second = None
     try:
         time.sleep(12)
         first.send_signal(2)  # SIGINT: the emulator writes its log and exits; the link drops
@@ -79,10 +87,7 @@ def test_run_reconnects_after_the_autopilot_restarts_and_ignores_noise(tmp_path)
         second = emulator("second.json", 15)
         second.wait(timeout=40)
     finally:
-        for p in (first, run):
-            if p.poll() is None:
-                p.terminate()
-        run.wait(timeout=20)
+        stop(first, second, run)
     one = json.loads((tmp_path / "first.json").read_text())
     two = json.loads((tmp_path / "second.json").read_text())
     assert len(one["gps_input_arrivals_t_s"]) > 50

@@ -14,13 +14,12 @@ import numpy as np
 from auxgps.config import PipelineConfig
 from auxgps.core.camera import CameraPose, PinholeCamera, camera_from_config
 from auxgps.core.features import FeatureDetector
-from auxgps.core.geometry import R_body_cam_from_mount
+from auxgps.core.geometry import R_body_cam_from_mount, R_ned_body_from_euler
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.localise import Fix, Localiser
 from auxgps.core.mapping import Mapper
 from auxgps.core.nav import NavSample
 from auxgps.core.fusion import ImuSample, NavFilter
-from auxgps.core.geometry import R_ned_body_from_euler
 from auxgps.sim.flight import SimConfig, fly, imu_bias, lawnmower_waypoints, sense, sense_imu
 from auxgps.sim.render import Renderer
 from auxgps.sim.world import World
