@@ -109,7 +109,8 @@ class PositioningConfig:
     max_seeds: Annotated[int, Field(ge=1)] = 300
     max_tracking_search_m: Positive = 1.5  # a prior looser than this (3 sigma, m) means acquisition
     min_search_radius_m: NonNegative = 1.0
-    rival_min_share: Annotated[float, Field(gt=0, le=1)] = 0.3  # rivals with less support are not weighed
+    rival_min_share: Annotated[float, Field(gt=0, le=1)] = 0.3  # readings with less support are not weighed
+    max_readings: Annotated[int, Field(ge=1)] = 6  # distinct hypotheses refined and weighed per frame
     footprint_margin_m: NonNegative = 2.0
 
 

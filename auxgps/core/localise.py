@@ -179,21 +179,14 @@ class Localiser:
         corr = _Correspondences(feat_i, lm_id, L, d, hyp, tau)
         view = _View(features, R_ned_cam, alt_m, cand)
         seeds, support, members = self._consensus(corr, n_feat)
-        best = int(np.argmax(support))
-        best_support = int(support[best])
+        best_support = int(support.max())
         if best_support < min_inliers:
             return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
-        winner = self._reading(corr, view, members[best], seeds[best])
-        n_inl = int(winner.inl.sum())
-        if n_inl < min_inliers or not np.all(np.isfinite(winner.p)):
-            return NoFix(t_s, f"{n_inl} inliers after refinement", n_inl, n_corr, n_feat)
-        verdict = self._against_rival(winner, corr, view, prior, best_support, ratio)
+        verdict = self._choose(corr, view, prior, seeds, support, members, min_inliers, ratio)
         if isinstance(verdict, str):
-            return NoFix(t_s, verdict, n_inl, n_corr, n_feat)
+            return NoFix(t_s, verdict, best_support, n_corr, n_feat)
         p, cov, inl = verdict.p, verdict.cov, verdict.inl
         n_inl = int(inl.sum())
-        if n_inl < min_inliers:
-            return NoFix(t_s, f"the likelier reading has {n_inl} inliers", n_inl, n_corr, n_feat)
         share = verdict.score / max(n_inl, 1)
         if not tracking and share < cfg.min_explained_acquire:
             return NoFix(t_s, f"acquisition: {share:.0%} of the landmarks expected in view are seen", n_inl, n_corr, n_feat)
@@ -201,32 +194,43 @@ class Localiser:
 
     # -- steps -------------------------------------------------------------------------------------------------
 
-    def _against_rival(self, winner: _Reading, corr: _Correspondences, view: _View, prior, best_support: int, ratio: float):
-        """The winner, or the rival if it is more probable, or a reason (str) why the frame is ambiguous.
+    def _choose(self, corr: _Correspondences, view: _View, prior, seeds, support, members, min_inliers: int, ratio: float):
+        """The most probable reading of the frame, or a reason (str) why the frame is ambiguous.
 
-        Second round without everything the winner explains: a rival position nearly as well supported (the
-        same features taken for other landmarks, as with a corner matched to the wrong one of identical cubes)
-        makes the frame ambiguous. Each reading is scored by its inliers, times the share of the landmarks it
-        puts inside the image that do have a feature there (a wrong position predicts corners on bare ground),
-        times, with a prior, how likely its position is under the prior: with a symmetric object, the prediction
-        and not the map's symmetry must choose.
+        The best-supported hypotheses that are distinct (more than their agreement radius apart) are refined
+        into readings, up to ``max_readings``. Each reading is scored by its inliers, times the share of the
+        landmarks it puts inside the image that do have a feature there (a wrong position predicts corners on
+        bare ground), times, with a prior, how likely its position is under the prior: a corner matched to the
+        wrong one of identical cubes, or a small cube read half its size off (its top corners taken for its
+        bottom ones), is a reading of its own, and the prediction, not the map's symmetry, must choose. A
+        second distinct reading scoring at least ``ratio`` of the best makes the frame ambiguous.
         """
         cfg = self.cfg.positioning
-        rest = np.linalg.norm(corr.hyp - winner.p[:2], axis=1) > 2.0 * corr.tau
-        if np.count_nonzero(rest) < 2:
-            return winner
-        others = corr.subset(rest)
-        r_seeds, r_support, r_members = self._consensus(others, len(view.features))
-        rb = int(np.argmax(r_support))
-        if r_support[rb] < max(2.0, cfg.rival_min_share * best_support):
-            return winner
-        rival = self._reading(others, view, r_members[rb], r_seeds[rb])
-        w_score, r_score = winner.score * _prior_weight(winner, prior), rival.score * _prior_weight(rival, prior)
-        if r_score > w_score:
-            winner, rival, w_score, r_score = rival, winner, r_score, w_score
-        if r_score >= ratio * w_score:
-            return f"ambiguous: rival scores {r_score:.2f} against {w_score:.2f}"
-        return winner
+        floor = max(2.0, cfg.rival_min_share * float(support.max()))
+        readings: list[_Reading] = []
+        seed_hyps: list[np.ndarray] = []
+        for s in np.argsort(-support, kind="stable"):
+            if support[s] < floor or len(readings) >= cfg.max_readings:
+                break
+            h = corr.hyp[seeds[s]]
+            if any(np.linalg.norm(h - q) <= corr.tau[seeds[s]] for q in seed_hyps):
+                continue  # a hypothesis of a reading already taken
+            seed_hyps.append(h)
+            r = self._reading(corr, view, members[s], seeds[s])
+            if int(r.inl.sum()) >= min_inliers and np.all(np.isfinite(r.p)):
+                readings.append(r)
+        if not readings:
+            return f"no hypothesis keeps {min_inliers} inliers after refinement"
+        scores = np.array([r.score * _prior_weight(r, prior) for r in readings])
+        order = np.argsort(-scores, kind="stable")
+        best = readings[order[0]]
+        if scores[order[0]] <= 0.0:
+            return "no reading is likely under the prediction"
+        radius = 2.0 * float(np.median(corr.tau))
+        for k in order[1:]:
+            if np.linalg.norm(readings[k].p[:2] - best.p[:2]) > radius and scores[k] >= ratio * scores[order[0]]:
+                return f"ambiguous: rival scores {scores[k]:.2f} against {scores[order[0]]:.2f}"
+        return best
 
     def _reading(self, corr: _Correspondences, view: _View, member_row: np.ndarray, seed: int) -> _Reading:
         """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
