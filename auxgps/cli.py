@@ -118,8 +118,16 @@ def _run(args) -> int:
         log_dir=args.log_dir,
         duration_s=args.duration,
         gps_input_rate_hz=args.rate,
+        gps_delay_s=args.gps_delay_ms / 1000.0,
     )
     return Companion(load_pipeline_config(args.config), opts).run()
+
+
+def _delay_ms(text):
+    value = int(text)
+    if not 1 <= value <= 250:
+        raise argparse.ArgumentTypeError(f"must be 1 to 250 ms (ArduPilot's GPS2_DELAY_MS range), got {text}")
+    return value
 
 
 def _positive(kind):
@@ -161,6 +169,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--log-dir", default="out/run", help="CSV logs of fixes, gate decisions, GPS_INPUT and events")
     p.add_argument("--duration", type=_positive(float), help="stop after this many seconds")
     p.add_argument("--rate", type=_positive(float), default=10.0, help="GPS_INPUT rate, Hz (default 10)")
+    p.add_argument("--gps-delay-ms", type=_delay_ms, default=100,
+                   help="each GPS_INPUT describes the vehicle this long before it is sent; set the autopilot's GPS2_DELAY_MS to the same (default 100)")
     p.set_defaults(func=_run)
 
     p = sub.add_parser("demo", help="closed loop: the vehicle emulator and auxgps run, GPS1 failing mid-survey")

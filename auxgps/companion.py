@@ -45,6 +45,7 @@ class RunOptions:
     log_dir: str = "out/run"
     duration_s: float | None = None
     gps_input_rate_hz: float = 10.0
+    gps_delay_s: float = 0.1  # GPS_INPUT describes the vehicle this long ago: the autopilot's GPS2_DELAY_MS
 
 
 class CsvLog:
@@ -185,8 +186,9 @@ class Companion:
 
     def _send_gps_input(self) -> None:
         now = time.monotonic()
+        t_described = now - self.opts.gps_delay_s  # the autopilot fuses it against its state this long ago
         with self._lock:
-            est = self.filter.estimate() if self.filter is not None else None
+            est = self.filter.estimate_at(t_described) if self.filter is not None else None
             decision = self.supervisor.decide(
                 now, sigma_h_m=est.sigma_h_m if est is not None else None, last_correction_t_s=self._last_correction_t
             )
@@ -194,7 +196,7 @@ class Companion:
             sats = self._gps1_sats if decision.gps1_trusted else None
         if frame is None:
             return
-        t_unix = time.time() - (now - (est.t_s if est is not None else now))
+        t_unix = time.time() - self.opts.gps_delay_s
         out = gps_output(est, frame, t_unix, believed=decision.mode != Mode.NO_FIX, gps1_sats=sats, max_sigma_h_m=self.supervisor.cfg.max_sigma_h_m)
         if self.link.send_gps_input(out, int(t_unix * 1e6)):
             self.sent += 1

@@ -100,17 +100,20 @@ class PositioningConfig:
     max_hamming: Annotated[int, Field(ge=0, le=256)] = 64
     inlier_px: Positive = 4.0
     min_inliers: Annotated[int, Field(ge=2)] = 4
-    ambiguity_ratio: Annotated[float, Field(gt=0, le=1)] = 0.8
+    # A frame is ambiguous when a second distinct reading's log-likelihood (about one unit per inlier) is
+    # within this margin of the best one's.
+    ambiguity_margin: NonNegative = 3.0
     # Acquisition, without a usable prior: more descriptor candidates, stronger evidence.
     k_best_acquire: Annotated[int, Field(ge=1, le=256)] = 32
     min_inliers_acquire: Annotated[int, Field(ge=2)] = 4
-    ambiguity_ratio_acquire: Annotated[float, Field(gt=0, le=1)] = 0.6
+    ambiguity_margin_acquire: NonNegative = 5.0
     min_explained_acquire: Probability = 0.6
     max_seeds: Annotated[int, Field(ge=1)] = 300
     max_tracking_search_m: Positive = 1.5  # a prior looser than this (3 sigma, m) means acquisition
     min_search_radius_m: NonNegative = 1.0
     rival_min_share: Annotated[float, Field(gt=0, le=1)] = 0.3  # readings with less support are not weighed
     max_readings: Annotated[int, Field(ge=1)] = 6  # distinct hypotheses refined and weighed per frame
+    prior_floor_m: NonNegative = 0.15  # added in quadrature to the prior's sigma when weighing readings
     footprint_margin_m: NonNegative = 2.0
 
 

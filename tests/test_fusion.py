@@ -158,3 +158,19 @@ def test_injected_wrong_cube_fixes_are_gated_on_a_simulated_flight():
     assert wrong_accepted == 0
     assert worst <= 0.30
     assert f.n_reinit == 0
+
+
+def test_estimate_at_an_earlier_time_is_the_state_then():
+    """What GPS_INPUT sends with a declared delay: the state the filter had at that moment, to 1e-12."""
+    f = NavFilter(FusionConfig(), 0.0, np.zeros(3), np.array([1.0, -0.5, 0.0]), 0.1, 0.1)
+    states = {}
+    for k in range(1, 101):
+        f.propagate(hover(0.01 * k))
+        states[k] = f.estimate()
+    then = f.estimate_at(states[70].t_s)
+    assert np.allclose(then.p_ned_m, states[70].p_ned_m, atol=atol)
+    assert np.allclose(then.p_ned_m[:2], [0.70, -0.35], atol=1e-9)  # constant velocity from the origin
+    assert np.allclose(then.cov_p_m2, states[70].cov_p_m2, atol=atol)
+    # between samples: carried by the velocity; at the newest sample: the estimate itself
+    assert np.allclose(f.estimate_at(0.705).p_ned_m[:2], [0.705, -0.3525], atol=1e-9)
+    assert np.allclose(f.estimate_at(f.t_s).p_ned_m, f.estimate().p_ned_m, atol=atol)

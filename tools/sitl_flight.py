@@ -5,9 +5,9 @@
 
 Starts SITL in a scratch folder (its defaults file beside the binary, plus config/ardupilot/auxgps-gps2.parm),
 connects a ground-station script on SERIAL0 (TCP 5760) and `auxgps run` on SERIAL1 (TCP 5762) with the world
-rendered at SIM_STATE's truth. The script arms in GUIDED, takes off to 15 m, flies a lawnmower of 10 legs over the
-world, disables GPS1 (SIM_GPS1_ENABLE = 0) after the third leg, finishes the legs, switches to RTL and waits for
-the landing. Prints one JSON line: landing_error_m (true distance from home), denied_s, the autopilot's
+rendered at SIM_STATE's truth. The script arms in GUIDED, takes off to 15 m, flies the thesis' survey over the
+world (a 20 m x 20 m lawnmower, north-south legs 2 m apart, at 1 m/s), disables GPS1 (SIM_GPS1_ENABLE = 0) after
+the third leg, finishes the survey on GPS2 (more than 3 minutes), switches to RTL and waits for the landing. Prints one JSON line: landing_error_m (true distance from home), denied_s, the autopilot's
 horizontal error after the failure (rms, max), and whether GPS2 carried a 3D fix. Exit 0 if it landed within 1 m.
 """
 
@@ -29,7 +29,10 @@ from pymavlink import mavutil  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 M = mavutil.mavlink
-LEGS_NE_M = [(-8, -8), (8, -8), (8, -4), (-8, -4), (-8, 0), (8, 0), (8, 4), (-8, 4), (-8, 8), (8, 8)]
+SPEED_M_S = 1.0
+# The thesis' survey: north-south legs from east -10 m to +10 m, 2 m apart, north -10 m to +10 m.
+WAYPOINTS_NE_M = [(n, e) for k, e in enumerate(range(-10, 11, 2)) for n in ((-10, 10) if k % 2 == 0 else (10, -10))]
+FAIL_AFTER_WAYPOINT = 5  # GPS1 is disabled at the end of the third leg
 
 
 class GroundStation:
@@ -80,13 +83,19 @@ def fly(gs: GroundStation) -> dict:
         gs.pump(3)
     gs.c.mav.command_long_send(1, 1, M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 15)
     gs.pump(20)
+    # WPNAV_SPEED (cm/s) paces guided legs and RTL alike; DO_CHANGE_SPEED the current guided target.
+    gs.c.mav.param_set_send(1, 1, b"WPNAV_SPEED", SPEED_M_S * 100, M.MAV_PARAM_TYPE_REAL32)
+    gs.c.mav.command_long_send(1, 1, M.MAV_CMD_DO_CHANGE_SPEED, 0, 1, SPEED_M_S, -1, 0, 0, 0, 0)
     failed_at, errors, gps2_fixes = None, [], set()
-    for i, (n, e) in enumerate(LEGS_NE_M):
+    here = (0.0, 0.0)
+    for i, (n, e) in enumerate(WAYPOINTS_NE_M):
         lat, lon, _ = pymap3d.ned2geodetic(n, e, 0, *gs.home)
         gs.c.mav.set_position_target_global_int_send(
             0, 1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 0b110111111000, int(lat * 1e7), int(lon * 1e7), 15, 0, 0, 0, 0, 0, 0, 0, 0)
         t_leg = time.time()
-        while time.time() - t_leg < 25:
+        leg_timeout_s = math.dist(here, (n, e)) / SPEED_M_S + 20.0
+        here = (n, e)
+        while time.time() - t_leg < leg_timeout_s:
             gs.pump(0.5)
             tr, es = gs.truth(), gs.estimate()
             if failed_at and tr and es:
@@ -95,12 +104,12 @@ def fly(gs: GroundStation) -> dict:
                 gps2_fixes.add(g2.fix_type if g2 else None)
             if tr and math.dist(tr, (n, e)) < 0.7:
                 break
-        if i == 2:
+        if i == FAIL_AFTER_WAYPOINT:
             gs.c.mav.param_set_send(1, 1, b"SIM_GPS1_ENABLE", 0, M.MAV_PARAM_TYPE_REAL32)
             failed_at = time.time()
     gs.c.set_mode("RTL")
     t_rtl = time.time()
-    while time.time() - t_rtl < 120:
+    while time.time() - t_rtl < 180:
         gs.pump(1)
         tr, es = gs.truth(), gs.estimate()
         if tr and es:
@@ -142,7 +151,7 @@ def main(argv=None) -> int:
         time.sleep(2)
         gs = GroundStation(home)
         run = subprocess.Popen([sys.executable, "-m", "auxgps.cli", "run", "--connect", "tcp:127.0.0.1:5762",
-                                "--camera", f"sim:{args.world}", "--log-dir", str(out / "run"), "--duration", "900"],
+                                "--camera", f"sim:{args.world}", "--log-dir", str(out / "run"), "--duration", "1500"],
                                cwd=REPO, stdout=open(out / "run.log", "w"), stderr=subprocess.STDOUT)
         result = fly(gs)
     finally:

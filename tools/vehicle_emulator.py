@@ -105,6 +105,7 @@ SWITCH_2_MORE_SATS_S = 5.0
 
 # The emulated vehicle's own choices
 DEAD_RECKON_S = 2.0
+GPS2_DELAY_MS_DEFAULT = 100  # as config/ardupilot/auxgps-gps2.parm sets it
 FAILSAFE_S = 8.0
 GPS_FRESH_S = 0.5  # a fix this old still counts as "gps" in the log's nav state
 LAND_SPEED_M_S = 0.5
@@ -539,6 +540,7 @@ class VehicleSim:
         self.params: dict[str, float] = {
             "SIM_GPS1_ENABLE": 1, "GPS2_TYPE": options.gps2_type,
             "GPS_AUTO_SWITCH": options.auto_switch, "GPS_PRIMARY": options.gps_primary,
+            "GPS2_DELAY_MS": GPS2_DELAY_MS_DEFAULT,
         }
         self.gps = (GpsInstance(), GpsInstance())
         self.selector = PrimarySelector()
@@ -586,7 +588,7 @@ class VehicleSim:
     def set_param(self, name: str, value: float) -> float:
         """PARAM_SET: store ``value`` (unknown names are kept and echoed, without effect); return the new value."""
         old = self.params.get(name)
-        self.params[name] = int(value) if name in ("SIM_GPS1_ENABLE", "GPS2_TYPE", "GPS_AUTO_SWITCH", "GPS_PRIMARY") \
+        self.params[name] = int(value) if name in ("SIM_GPS1_ENABLE", "GPS2_TYPE", "GPS_AUTO_SWITCH", "GPS_PRIMARY", "GPS2_DELAY_MS") \
             else float(value)
         if name == "SIM_GPS1_ENABLE" and old != self.params[name]:
             self._gps1_enable_changed(bool(self.params[name]))
@@ -622,7 +624,10 @@ class VehicleSim:
         self.gps[instance].on_message(t_s, reading)
         self._update_primary(t_s)
         if instance == self.selector.primary and self.gps[instance].usable(t_s):
-            self.estimator.on_fix(t_s, reading.p_ned_m, reading.v_ned_m_s)
+            # The EKF fuses a GPS reading against its state ``lag`` ago and carries it forward (GPS2_DELAY_MS;
+            # 0 means ArduPilot's 200 ms). The emulated GPS1 is the truth at arrival.
+            lag_s = 0.0 if instance == 0 else (int(self.params["GPS2_DELAY_MS"]) or 200) / 1000.0
+            self.estimator.on_fix(t_s - lag_s, reading.p_ned_m, reading.v_ned_m_s)
 
     def _update_primary(self, t_s: float) -> None:
         before = self.selector.primary
@@ -967,7 +972,7 @@ def open_link(port: int) -> TcpServerLink:
 
 
 PARAM_TYPES = {name: MAV.MAV_PARAM_TYPE_INT8 for name in ("SIM_GPS1_ENABLE", "GPS2_TYPE", "GPS_AUTO_SWITCH",
-                                                          "GPS_PRIMARY")}
+                                                          "GPS_PRIMARY")} | {"GPS2_DELAY_MS": MAV.MAV_PARAM_TYPE_INT16}
 MAX_MESSAGES_PER_POLL = 200
 MAX_LAG_S = 0.25  # emulated s the loop may run behind the wall clock; beyond, the clock slips (a stalled
 # process would otherwise catch up in a burst and open gaps in the GPS_INPUT it receives)

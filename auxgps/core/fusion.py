@@ -146,6 +146,20 @@ class NavFilter:
         x, P = self._ekf.x[:, 0], self._ekf.P
         return FusedEstimate(self.t_s, x[:3].copy(), x[3:6].copy(), P[:3, :3].copy(), P[3:6, 3:6].copy())
 
+    def estimate_at(self, t_s: float) -> FusedEstimate:
+        """The estimate at ``t_s`` (s), at most ``history_s`` back: the state after the last IMU sample not later
+        than ``t_s``, carried to ``t_s`` by its velocity. What GPS_INPUT sends when the autopilot is told its GPS
+        lags by a fixed delay (``GPS2_DELAY_MS``): the vehicle at that moment, not at the last IMU sample."""
+        t_s = float(t_s)
+        if t_s >= self.t_s or not self._history:
+            t_k, x, P = self.t_s, self._ekf.x[:, 0], self._ekf.P
+        else:
+            older = [h for h in self._history if h[0] <= t_s]
+            t_k, x, P = (older[-1] if older else self._history[0])[:3]
+            x = x[:, 0]
+        dt = t_s - t_k
+        return FusedEstimate(t_s, x[:3] + x[3:6] * dt, x[3:6].copy(), P[:3, :3] + P[3:6, 3:6] * dt * dt, P[3:6, 3:6].copy())
+
     def prior(self, t_s: float | None = None) -> PositionPrior:
         """Where the next frame should be, for the localiser's search (propagated to ``t_s`` by velocity)."""
         est = self.estimate()

@@ -59,13 +59,14 @@ class NoFix:
 LocateResult = Fix | NoFix
 
 
-def _prior_weight(reading, prior: PositionPrior | None) -> float:
-    """exp(-d^2 / 2 s^2): how likely a reading's position is under the prior (1 without one)."""
+def _prior_m2(reading, prior: PositionPrior | None, floor_m: float) -> float:
+    """Squared distance of a reading from the prior, in units of their combined horizontal sigma (0 without a
+    prior). ``floor_m`` is added in quadrature: a filter fed a few biased fixes can believe itself to a few
+    centimetres while it is decimetres off, and must not out-vote what the image shows."""
     if prior is None:
-        return 1.0
+        return 0.0
     d2 = float(np.sum((reading.p[:2] - prior.p_ned_m[:2]) ** 2))
-    s2 = prior.sigma_h_m**2 + float(np.trace(reading.cov[:2, :2])) / 2.0
-    return float(np.exp(-0.5 * d2 / s2))
+    return d2 / (prior.sigma_h_m**2 + float(np.trace(reading.cov[:2, :2])) / 2.0 + floor_m**2)
 
 
 @dataclass(frozen=True)
@@ -102,6 +103,7 @@ class _Reading:
     cov: np.ndarray
     inl: np.ndarray
     score: float
+    attitude_m2: float  # squared Mahalanobis distance of its attitude correction from the telemetry's
 
 
 class Localiser:
@@ -146,10 +148,10 @@ class Localiser:
         if tracking:
             pose = CameraPose(np.array([prior.p_ned_m[0], prior.p_ned_m[1], -alt_m]), R_ned_cam)
             feat_i, lm_id = self._match_guided(features, cand, pose, radius_px)
-            min_inliers, ratio = cfg.min_inliers, cfg.ambiguity_ratio
+            min_inliers, margin = cfg.min_inliers, cfg.ambiguity_margin
         else:
             feat_i, lm_id = self._match(features, cand, cfg.k_best_acquire)
-            min_inliers, ratio = cfg.min_inliers_acquire, cfg.ambiguity_ratio_acquire
+            min_inliers, margin = cfg.min_inliers_acquire, cfg.ambiguity_margin_acquire
         if len(feat_i) < cfg.min_inliers:
             return NoFix(t_s, f"{len(feat_i)} descriptor matches", n_correspondences=len(feat_i), n_features=n_feat)
 
@@ -182,7 +184,7 @@ class Localiser:
         best_support = int(support.max())
         if best_support < min_inliers:
             return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
-        verdict = self._choose(corr, view, prior, seeds, support, members, min_inliers, ratio)
+        verdict = self._choose(corr, view, prior, seeds, support, members, min_inliers, margin)
         if isinstance(verdict, str):
             return NoFix(t_s, verdict, best_support, n_corr, n_feat)
         p, cov, inl = verdict.p, verdict.cov, verdict.inl
@@ -194,16 +196,17 @@ class Localiser:
 
     # -- steps -------------------------------------------------------------------------------------------------
 
-    def _choose(self, corr: _Correspondences, view: _View, prior, seeds, support, members, min_inliers: int, ratio: float):
+    def _choose(self, corr: _Correspondences, view: _View, prior, seeds, support, members, min_inliers: int, margin: float):
         """The most probable reading of the frame, or a reason (str) why the frame is ambiguous.
 
         The best-supported hypotheses that are distinct (more than their agreement radius apart) are refined
-        into readings, up to ``max_readings``. Each reading is scored by its inliers, times the share of the
-        landmarks it puts inside the image that do have a feature there (a wrong position predicts corners on
-        bare ground), times, with a prior, how likely its position is under the prior: a corner matched to the
-        wrong one of identical cubes, or a small cube read half its size off (its top corners taken for its
-        bottom ones), is a reading of its own, and the prediction, not the map's symmetry, must choose. A
-        second distinct reading scoring at least ``ratio`` of the best makes the frame ambiguous.
+        into readings, up to ``max_readings``. Each reading gets a log-likelihood: its inliers times the share
+        of the landmarks it puts inside the image that do have a feature there (a wrong position predicts
+        corners on bare ground), less half the squared Mahalanobis distances of the attitude correction it
+        needs and of its position from the prior. A corner matched to the wrong one of identical cubes, or a
+        small cube read off by its height (its bottom corners taken for its top ones), is a reading of its own,
+        and the image and the prediction together must choose. A second distinct reading within ``margin`` of
+        the best makes the frame ambiguous.
         """
         cfg = self.cfg.positioning
         floor = max(2.0, cfg.rival_min_share * float(support.max()))
@@ -221,22 +224,20 @@ class Localiser:
                 readings.append(r)
         if not readings:
             return f"no hypothesis keeps {min_inliers} inliers after refinement"
-        scores = np.array([r.score * _prior_weight(r, prior) for r in readings])
-        order = np.argsort(-scores, kind="stable")
+        ll = np.array([r.score - 0.5 * r.attitude_m2 - 0.5 * _prior_m2(r, prior, cfg.prior_floor_m) for r in readings])
+        order = np.argsort(-ll, kind="stable")
         best = readings[order[0]]
-        if scores[order[0]] <= 0.0:
-            return "no reading is likely under the prediction"
         radius = 2.0 * float(np.median(corr.tau))
         for k in order[1:]:
-            if np.linalg.norm(readings[k].p[:2] - best.p[:2]) > radius and scores[k] >= ratio * scores[order[0]]:
-                return f"ambiguous: rival scores {scores[k]:.2f} against {scores[order[0]]:.2f}"
+            if np.linalg.norm(readings[k].p[:2] - best.p[:2]) > radius and ll[k] >= ll[order[0]] - margin:
+                return f"ambiguous: a reading {np.linalg.norm(readings[k].p[:2] - best.p[:2]):.2f} m away is within {ll[order[0]] - ll[k]:.1f} of the best"
         return best
 
     def _reading(self, corr: _Correspondences, view: _View, member_row: np.ndarray, seed: int) -> _Reading:
         """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
         inl = self._one_per_feature(member_row, corr.feat_i, np.linalg.norm(corr.hyp - corr.hyp[seed], axis=1))
-        p, cov, inl = self._refine(np.array([*corr.hyp[seed], -view.alt_m]), corr, inl, view.alt_m)
-        return _Reading(p, cov, inl, int(inl.sum()) * self._explained_share(p, view.R_ned_cam, view.cand, view.features))
+        p, cov, inl, attitude_m2 = self._refine(np.array([*corr.hyp[seed], -view.alt_m]), corr, inl, view.alt_m)
+        return _Reading(p, cov, inl, int(inl.sum()) * self._explained_share(p, view.R_ned_cam, view.cand, view.features), attitude_m2)
 
     def _candidates(self, alt_m: float, prior: PositionPrior | None) -> np.ndarray:
         """Usable landmarks within reach of the prior's footprint (all usable ones without a prior)."""
@@ -311,7 +312,7 @@ class Localiser:
         keep[order[first]] = True
         return keep
 
-    def _refine(self, p0: np.ndarray, corr: _Correspondences, inl: np.ndarray, alt_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _refine(self, p0: np.ndarray, corr: _Correspondences, inl: np.ndarray, alt_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """Weighted least squares over the inliers for the camera position and a small attitude correction.
 
         Unknowns: position (3) and a rotation ``dtheta`` (3, NED) of the telemetry attitude, which turns each ray
@@ -358,4 +359,5 @@ class Localiser:
             dof = max(2 * int(inl.sum()) - 3, 1)
             cov = np.linalg.inv(A)[:3, :3] * max(1.0, chi2 / dof)
             inl = inl & (err_px <= cfg.inlier_px)
-        return p, cov, inl
+        attitude_m2 = float(dtheta @ prior_info[3:, 3:] @ dtheta)
+        return p, cov, inl, attitude_m2
