@@ -14,9 +14,10 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from auxgps.core.camera import CameraPose, PinholeCamera
-from auxgps.core.features import Features, hamming
+from auxgps.core.features import Features, hamming, pairs_within
 from auxgps.core.landmarks import LandmarkMap
 
 
@@ -268,8 +269,8 @@ class Localiser:
         inside = front & self.camera.in_image(np.nan_to_num(uv, nan=-1e6), margin)
         if not np.any(inside):
             return 0.0
-        d = np.linalg.norm(uv[inside][:, None, :] - features.uv_px[None, :, :], axis=2)
-        return float(np.mean(d.min(axis=1) <= margin))
+        near = cKDTree(features.uv_px).query_ball_point(uv[inside], margin, return_length=True) if len(features) else 0
+        return float(np.mean(near > 0))
 
     def _match_guided(self, features: Features, cand: np.ndarray, pose: CameraPose, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
         """Every (feature, landmark) pair whose predicted pixel is within ``radius_px`` and whose descriptors agree."""
@@ -278,8 +279,7 @@ class Localiser:
         cand, uv = cand[keep], uv[keep]
         if len(cand) == 0:
             return np.zeros(0, int), np.zeros(0, int)
-        d_px = np.linalg.norm(features.uv_px[:, None, :] - uv[None, :, :], axis=2)
-        fi, ci = np.nonzero(d_px <= radius_px)
+        fi, ci = pairs_within(features.uv_px, uv, radius_px)
         ok = hamming(features.descriptors[fi], self.map.descriptors[cand[ci]]) <= self.cfg.positioning.max_hamming
         return fi[ok], cand[ci[ok]]
 
@@ -290,12 +290,14 @@ class Localiser:
         K = len(hyp)
         # Seeds: every correspondence when few, else an even spread (deterministic).
         seeds = np.arange(K) if K <= cfg.max_seeds else np.linspace(0, K - 1, cfg.max_seeds).astype(int)
-        dist = np.linalg.norm(hyp[seeds, None, :] - hyp[None, :, :], axis=2)  # (S, K)
-        members = dist <= tau[None, :]
-        hit = np.zeros((len(seeds), n_feat), bool)
-        rows, cols = np.nonzero(members)
-        hit[rows, feat_i[cols]] = True
-        return seeds, hit.sum(axis=1), members
+        dn = hyp[seeds, 0, None] - hyp[None, :, 0]
+        de = hyp[seeds, 1, None] - hyp[None, :, 1]
+        members = np.sqrt(dn * dn + de * de) <= tau[None, :]  # (S, K), the same arithmetic as a norm
+        # Support in distinct features: members grouped by feature, one vote per group with any member.
+        order = np.argsort(feat_i, kind="stable")
+        starts = np.flatnonzero(np.r_[True, feat_i[order][1:] != feat_i[order][:-1]])
+        support = np.logical_or.reduceat(members[:, order], starts, axis=1).sum(axis=1)
+        return seeds, support, members
 
     @staticmethod
     def _one_per_feature(member_row: np.ndarray, feat_i: np.ndarray, dist: np.ndarray) -> np.ndarray:
