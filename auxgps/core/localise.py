@@ -319,6 +319,12 @@ class Localiser:
         lands in the position covariance; where it can (objects spread over the view), both get better.
         Inliers are re-selected by reprojection error.
         """
+        idx = np.flatnonzero(inl)
+        if len(idx) < len(inl):  # only inliers can stay inliers: solve on them alone (the same numbers, less work)
+            p, cov, inl_sub = self._refine(p0, corr.subset(idx), np.ones(len(idx), bool), alt_m)
+            inl = np.zeros(len(inl), bool)
+            inl[idx] = inl_sub
+            return p, cov, inl
         cfg = self.cfg.positioning
         noise = self.cfg.noise
         f = self.camera.focal_px
