@@ -143,7 +143,7 @@ def _bench(args) -> int:
         sizes = sizes or (5_000, 20_000)
     sizes = sizes or BenchConfig.map_sizes
     reported = args.reported_map or (100_000 if 100_000 in sizes else sizes[len(sizes) // 2])
-    cfg = BenchConfig(fps=args.fps, seed=args.seed, map_sizes=sizes, reported_map=reported)
+    cfg = BenchConfig(fps=args.fps, mapping_fps=args.mapping_fps, seed=args.seed, map_sizes=sizes, reported_map=reported)
     methods = () if args.no_baseline else (_load_baseline(load_pipeline_config(args.config)),)
     t0 = time.monotonic()
 
@@ -222,7 +222,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="write the figures as JSON to this file")
     p.add_argument("--config", help="pipeline config YAML (default: built-in defaults)")
     p.add_argument("--sim-config", help="simulation config YAML (default: built-in defaults)")
-    p.add_argument("--fps", type=_positive(float), default=2.0, help="frames per second of both flights (default 2)")
+    p.add_argument("--fps", type=_positive(float), default=2.0, help="frames per second of the positioning flight (default 2)")
+    p.add_argument("--mapping-fps", type=_positive(float), default=1.0, help="frames per second of the mapping survey (default 1)")
     p.add_argument("--seed", type=int, default=1, help="seed of the world, flights and padding (default 1)")
     p.add_argument("--map-sizes", help="landmark counts to pad the map to, comma-separated (default 10000,100000,1000000)")
     p.add_argument("--reported-map", type=_positive(int), help="the map size of the headline positioning figures (default: the second size)")

@@ -188,6 +188,10 @@ class LandmarkMap:
         """Rebuild the spatial index at the next query (after positions were written directly)."""
         self.index.invalidate()
 
+    def sync_index(self) -> None:
+        """Bring the spatial index up to date now (after loading a map), not at the first query."""
+        self.index.sync(self.p_ned_m[: self._n])
+
     def _columns(self):
         return (self.descriptors, self.p_ned_m, self.info_packed, self.n_seen, self.view_cos, self.chi2_mean, self.n_visible)
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
 
 from auxgps.core.camera import CameraPose, PinholeCamera
 from auxgps.core.features import Features, hamming, pairs_within
@@ -290,9 +291,7 @@ class Localiser:
         K = len(hyp)
         # Seeds: every correspondence when few, else an even spread (deterministic).
         seeds = np.arange(K) if K <= cfg.max_seeds else np.linspace(0, K - 1, cfg.max_seeds).astype(int)
-        dn = hyp[seeds, 0, None] - hyp[None, :, 0]
-        de = hyp[seeds, 1, None] - hyp[None, :, 1]
-        members = np.sqrt(dn * dn + de * de) <= tau[None, :]  # (S, K), the same arithmetic as a norm
+        members = cdist(hyp[seeds], hyp) <= tau[None, :]  # (S, K); cdist: one pass, the same numbers as a norm
         # Support in distinct features: members grouped by feature, one vote per group with any member.
         order = np.argsort(feat_i, kind="stable")
         starts = np.flatnonzero(np.r_[True, feat_i[order][1:] != feat_i[order][:-1]])
