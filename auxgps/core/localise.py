@@ -218,6 +218,8 @@ class Localiser:
         if np.count_nonzero(rest) < 2:
             return winner
         others = corr.subset(rest)
+        if len(np.unique(others.feat_i)) < max(2.0, cfg.rival_min_share * best_support):
+            return winner  # the rival's support cannot exceed its distinct features: no need to count it
         r_seeds, r_support, r_members = self._consensus(others, len(view.features))
         rb = int(np.argmax(r_support))
         if r_support[rb] < max(2.0, cfg.rival_min_share * best_support):

@@ -146,7 +146,7 @@ def bench_report(fig: dict) -> str:
         + ", ".join(f"{k} {ms(v['median'])}" for k, v in mp["per_frame_ms"].items() if k != "total"),
         "map scale, median (p99) ms per positioning frame: "
         + ", ".join(f"{k}: {ms(v)} ({ms(fig['scaling_p99'][k])})" for k, v in fig["scaling"].items())
-        + (f"; growth {100 * fig['scaling_growth']:.0f} %" if fig.get("scaling_growth") is not None else ""),
+        + (f"; growth {100 * fig['scaling_growth']:.0f} % (CPU time: {100 * fig['scaling_growth_cpu']:.0f} %)" if fig.get("scaling_growth") is not None else ""),
         f"memory: {fig['bytes_per_landmark']:.1f} bytes per landmark (columns, slack and index of the {pos['map_landmarks']}-landmark map)",
     ]
     if "baseline" in fig:
@@ -318,59 +318,78 @@ class _Replay:
     cpu_ms: list = field(default_factory=list)  # per frame, this thread's CPU time for detection and locating
 
 
-def _replay_positioning(script: _PositioningScript, landmarks: LandmarkMap, pipeline, sim, cfg, parts, seed, progress) -> _Replay:
-    """Run the positioning flight against ``landmarks``: filter on IMU, barometer, GPS until denial, then fixes."""
-    localiser = Localiser(pipeline, parts.camera, parts.R_body_cam, landmarks)
-    match_clock = _Clock()
-    for name in ("_candidates", "_match_guided", "_match"):
-        setattr(localiser, name, match_clock.wrap(getattr(localiser, name)))
+class _Run:
+    """One map's replay of the positioning flight: its localiser, filter, fixes waiting for the filter, records."""
+
+    def __init__(self, landmarks: LandmarkMap, script: _PositioningScript, pipeline, sim, parts, seed: int) -> None:
+        self.map = landmarks
+        self.localiser = Localiser(pipeline, parts.camera, parts.R_body_cam, landmarks)
+        self.match_clock = _Clock()
+        for name in ("_candidates", "_match_guided", "_match"):
+            setattr(self.localiser, name, self.match_clock.wrap(getattr(self.localiser, name)))
+        self.nav = NavFilter(pipeline.fusion, 0.0, script.p0_ned_m, np.zeros(3), sim.noise.gps_horizontal_m * 2, 0.1)
+        # The GPS_INPUT timer runs on its own clock (a thread of the companion), not locked to the camera's: the
+        # wait for its next tick after a fix is ready is uniform over one period, drawn here per fix (seeded).
+        self.rng_tick = np.random.default_rng(seed + 7)
+        self.pending: list[tuple[float, Fix, int]] = []
+        self.rec = _Replay([], [], [], [], 0, 0)
+
+
+def _replay_positioning(script: _PositioningScript, maps: list[LandmarkMap], pipeline, sim, cfg, parts, seed, progress) -> list[_Replay]:
+    """Run the positioning flight against each of ``maps``: filter on IMU, barometer, GPS until denial, then fixes.
+
+    The maps are replayed in lockstep, each frame on every map in turn (starting with a different map at each
+    frame), so that a change in the machine's load while the benchmark runs falls on all of them alike.
+    """
     noise = pipeline.noise
-    nav = NavFilter(pipeline.fusion, 0.0, script.p0_ned_m, np.zeros(3), sim.noise.gps_horizontal_m * 2, 0.1)
     period_s = 1.0 / cfg.output_rate_hz
-    # The GPS_INPUT timer runs on its own clock (a thread of the companion), not locked to the camera's: the
-    # wait for its next tick after a fix is ready is uniform over one period, drawn here per fix (seeded).
-    rng_tick = np.random.default_rng(seed + 7)
-    pending: list[tuple[float, Fix, int]] = []
-    rec = _Replay([], [], [], [], 0, 0)
+    runs = [_Run(m, script, pipeline, sim, parts, seed) for m in maps]
+    n_frame = 0
     for i, t in enumerate(script.t_s):
         t = float(t)
-        if i in script.imu:
-            nav.propagate(script.imu[i])
-        if i in script.baro:
-            nav.update_altitude(t, script.baro[i], noise.altitude_m)
-        if i in script.gps:
-            nav.update_position(t, script.gps[i], np.eye(2) * noise.gps_horizontal_m**2)
-        while pending and pending[0][0] <= t:
-            _, fix, k = pending.pop(0)
-            t0 = time.perf_counter()
-            decision = nav.update_position(fix.t_s, fix.p_ned_m[:2], fix.cov_ned_m2[:2, :2])
-            rec.rows[k]["filtering"] = (time.perf_counter() - t0) * 1e3
-            if decision.accepted:
-                processing_ms = sum(rec.rows[k].values())
-                rec.latency_ms.append(processing_ms + rng_tick.uniform(0.0, period_s) * 1e3)
+        for run in runs:
+            nav, rec = run.nav, run.rec
+            if i in script.imu:
+                nav.propagate(script.imu[i])
+            if i in script.baro:
+                nav.update_altitude(t, script.baro[i], noise.altitude_m)
+            if i in script.gps:
+                nav.update_position(t, script.gps[i], np.eye(2) * noise.gps_horizontal_m**2)
+            while run.pending and run.pending[0][0] <= t:
+                _, fix, k = run.pending.pop(0)
+                t0 = time.perf_counter()
+                decision = nav.update_position(fix.t_s, fix.p_ned_m[:2], fix.cov_ned_m2[:2, :2])
+                rec.rows[k]["filtering"] = (time.perf_counter() - t0) * 1e3
+                if decision.accepted:
+                    processing_ms = sum(rec.rows[k].values())
+                    rec.latency_ms.append(processing_ms + run.rng_tick.uniform(0.0, period_s) * 1e3)
         if i not in script.frames:
             continue
         image, tel, truth_ne = script.frames[i]
-        prior = nav.prior(t)
-        c0 = time.thread_time()
-        t0 = time.perf_counter()
-        feats = parts.detector.detect(image, tel.R_ned_body @ parts.R_body_cam)
-        t1 = time.perf_counter()
-        res = localiser.locate(feats, t, tel.R_ned_body, tel.alt_m, prior)
-        t2 = time.perf_counter()
-        rec.cpu_ms.append((time.thread_time() - c0) * 1e3)
-        matching = match_clock.take()
-        rec.rows.append({"detection": (t1 - t0) * 1e3, "matching": matching, "solving": (t2 - t1) * 1e3 - matching, "filtering": 0.0})
-        rec.n_features.append(len(feats))
-        rec.n_frames += 1
-        if isinstance(res, Fix):
-            rec.n_fixes += 1
-            rec.fix_err_m.append(float(np.linalg.norm(res.p_ned_m[:2] - truth_ne)))
-            # The fix reaches the filter when the simulation says (fix_latency_s); its processing time is measured.
-            pending.append((t + sim.denial.fix_latency_s, res, len(rec.rows) - 1))
+        for j in range(len(runs)):
+            run = runs[(j + n_frame) % len(runs)]
+            rec = run.rec
+            prior = run.nav.prior(t)
+            c0 = time.thread_time()
+            t0 = time.perf_counter()
+            feats = parts.detector.detect(image, tel.R_ned_body @ parts.R_body_cam)
+            t1 = time.perf_counter()
+            res = run.localiser.locate(feats, t, tel.R_ned_body, tel.alt_m, prior)
+            t2 = time.perf_counter()
+            rec.cpu_ms.append((time.thread_time() - c0) * 1e3)
+            matching = run.match_clock.take()
+            rec.rows.append({"detection": (t1 - t0) * 1e3, "matching": matching, "solving": (t2 - t1) * 1e3 - matching, "filtering": 0.0})
+            rec.n_features.append(len(feats))
+            rec.n_frames += 1
+            if isinstance(res, Fix):
+                rec.n_fixes += 1
+                rec.fix_err_m.append(float(np.linalg.norm(res.p_ned_m[:2] - truth_ne)))
+                # The fix reaches the filter when the simulation says (fix_latency_s); its processing is measured.
+                run.pending.append((t + sim.denial.fix_latency_s, res, len(rec.rows) - 1))
+        n_frame += 1
         if progress:
             progress()
-    return rec
+    return [run.rec for run in runs]
 
 
 # -- the padded maps -------------------------------------------------------------------------------------------
@@ -467,17 +486,20 @@ def run_bench(pipeline: PipelineConfig, sim: SimConfig, cfg: BenchConfig, method
     script = _positioning_script(world, pipeline, sim, cfg, parts, seq_pos, progress and (lambda: say(None)))
 
     results: dict[str, dict] = {}
-    say(f"positioning on the real map ({len(real)} landmarks)")
-    results["real"] = _replay_summary(_replay_positioning(script, real, pipeline, sim, cfg, parts, cfg.seed, progress and (lambda: say(None))), real)
     rng_pad = np.random.default_rng(seq_pad)
+    maps: dict[str, LandmarkMap] = {"real": real}
     for n in sorted(cfg.map_sizes):
         if n < len(real):
             results[str(n)] = {"skipped": f"the real map already holds {len(real)} landmarks"}
             continue
-        big = padded_map(real, n, pipeline, rng_pad)
-        say(f"positioning on the map padded to {n} landmarks")
-        results[str(n)] = _replay_summary(_replay_positioning(script, big, pipeline, sim, cfg, parts, cfg.seed, progress and (lambda: say(None))), big)
-        del big
+        say(f"padding the map to {n} landmarks")
+        maps[str(n)] = padded_map(real, n, pipeline, rng_pad)
+    say(f"positioning frames on the real map ({len(real)} landmarks) and the padded ones, in lockstep")
+    recs = _replay_positioning(script, list(maps.values()), pipeline, sim, cfg, parts, cfg.seed, progress and (lambda: say(None)))
+    for (name, lm), rec in zip(maps.items(), recs):
+        results[name] = _replay_summary(rec, lm)
+    results = {k: results[k] for k in ["real", *[str(n) for n in sorted(cfg.map_sizes)]]}
+    del maps, recs
 
     frames = [script.frames[i] for i in sorted(script.frames)]
     compared = {}
@@ -521,6 +543,7 @@ def run_bench(pipeline: PipelineConfig, sim: SimConfig, cfg: BenchConfig, method
         },
         "scaling": {k: v.get("median_ms") for k, v in results.items() if k != "real"},
         "scaling_p99": {k: v.get("p99_ms") for k, v in results.items() if k != "real"},
+        "scaling_cpu": {k: v["cpu_ms"]["median"] if "cpu_ms" in v else None for k, v in results.items() if k != "real"},
         "maps": results,
         "bytes_per_landmark": reported["bytes_per_landmark"],
         "latency_ms": reported["latency_ms"],
@@ -532,6 +555,7 @@ def run_bench(pipeline: PipelineConfig, sim: SimConfig, cfg: BenchConfig, method
     sizes = [k for k in out["scaling"] if out["scaling"][k] is not None]
     if len(sizes) >= 2:
         out["scaling_growth"] = out["scaling"][sizes[-1]] / out["scaling"][sizes[0]] - 1.0
+        out["scaling_growth_cpu"] = out["scaling_cpu"][sizes[-1]] / out["scaling_cpu"][sizes[0]] - 1.0
     for name, c in compared.items():
         out[name] = c
         ratio = lambda a, b: (a / b) if (a is not None and b) else None  # noqa: E731
