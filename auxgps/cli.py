@@ -130,6 +130,61 @@ def _delay_ms(text):
     return value
 
 
+_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS", "VECLIB_MAXIMUM_THREADS")
+
+
+def _bench(args) -> int:
+    import os
+
+    if args.argv is not None and any(os.environ.get(k) != "1" for k in _THREAD_ENV):
+        # BLAS reads its thread count when NumPy is first imported, which has happened: start again with it set.
+        env = dict(os.environ, **{k: "1" for k in _THREAD_ENV})
+        os.execvpe(sys.executable, [sys.executable, "-m", "auxgps.cli", *args.argv], env)
+    import time
+
+    from auxgps.evaluation.bench import BenchConfig, bench_report, run_bench, tiny_sim_config
+
+    sim = load_sim_config(args.sim_config)
+    sizes = tuple(int(x) for x in args.map_sizes.split(",")) if args.map_sizes else None
+    if args.tiny:
+        sim = tiny_sim_config(sim)
+        sizes = sizes or (5_000, 20_000)
+    sizes = sizes or BenchConfig.map_sizes
+    reported = args.reported_map or (100_000 if 100_000 in sizes else sizes[len(sizes) // 2])
+    cfg = BenchConfig(fps=args.fps, mapping_fps=args.mapping_fps, seed=args.seed, map_sizes=sizes, reported_map=reported)
+    methods = () if args.no_baseline else (_load_baseline(load_pipeline_config(args.config)),)
+    t0 = time.monotonic()
+
+    def progress(msg=None):
+        if msg and not args.quiet:
+            print(f"[{time.monotonic() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    figures = run_bench(load_pipeline_config(args.config), sim, cfg, tuple(m for m in methods if m is not None), progress)
+    print(bench_report(figures))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(figures, indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _load_baseline(pipeline):
+    """The thesis' method from tools/thesis_baseline.py (in the source tree; None when auxgps is installed without it)."""
+    import importlib.util
+
+    from auxgps.core.camera import camera_from_config
+
+    path = CONFIG_DIR.parent / "tools" / "thesis_baseline.py"
+    if not path.exists():
+        print(f"auxgps: note: {path} not found, no baseline", file=sys.stderr)
+        return None
+    spec = importlib.util.spec_from_file_location("thesis_baseline", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module.make_baseline(camera_from_config(pipeline.camera))
+
+
 def _positive(kind):
     def parse(text):
         value = kind(text)
@@ -173,6 +228,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="each GPS_INPUT describes the vehicle this long before it is sent; set the autopilot's GPS2_DELAY_MS to the same (default 100)")
     p.set_defaults(func=_run)
 
+    p = sub.add_parser("bench", help="time the pipeline per frame on one thread, with maps up to a million landmarks, beside the thesis' method")
+    p.add_argument("--json", help="write the figures as JSON to this file")
+    p.add_argument("--config", help="pipeline config YAML (default: built-in defaults)")
+    p.add_argument("--sim-config", help="simulation config YAML (default: built-in defaults)")
+    p.add_argument("--fps", type=_positive(float), default=2.0, help="frames per second of the positioning flight (default 2)")
+    p.add_argument("--mapping-fps", type=_positive(float), default=1.0, help="frames per second of the mapping survey (default 1)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the world, flights and padding (default 1)")
+    p.add_argument("--map-sizes", help="landmark counts to pad the map to, comma-separated (default 10000,100000,1000000)")
+    p.add_argument("--reported-map", type=_positive(int), help="the map size of the headline positioning figures (default: the second size)")
+    p.add_argument("--tiny", action="store_true", help="a survey of a few metres and small maps: a smoke test of seconds")
+    p.add_argument("--no-baseline", action="store_true", help="do not run the thesis' method beside")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.set_defaults(func=_bench)
+
     p = sub.add_parser("demo", help="closed loop: the vehicle emulator and auxgps run, GPS1 failing mid-survey")
     p.add_argument("--out-dir", default="out/demo", help="logs, report.png and report.json go here")
     p.add_argument("--json", help="also write the figures here")
@@ -182,6 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.argv = None if argv is not None else sys.argv[1:]  # a command-line run, which bench may start again
     try:
         return args.func(args)
     except AuxGpsError as err:

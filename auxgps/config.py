@@ -59,7 +59,7 @@ class DetectorConfig:
     """Feature detector settings (ORB)."""
 
     kind: Literal["orb"] = "orb"
-    n_features: Annotated[int, Field(ge=1, le=100000)] = 1000
+    n_features: Annotated[int, Field(ge=1, le=100000)] = 600  # at most this many per frame; the cube worlds give far fewer
     fast_threshold: Annotated[int, Field(ge=1, le=255)] = 10
     n_levels: Annotated[int, Field(ge=1, le=16)] = 2
     scale_factor: Annotated[float, Field(gt=1.0, le=4.0)] = 1.3

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from auxgps.errors import FrameError
 
@@ -115,5 +116,26 @@ def refine_subpixel(gray: np.ndarray, feats: Features, window_px: int) -> Featur
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise Hamming distances between (N, 32) and (N, 32) uint8 descriptors -> (N,) int."""
+    """Row-wise Hamming distances between (N, 32) and (N, 32) uint8 descriptors -> (N,) int32.
+
+    Counted on 64-bit words with the CPU's popcount (``np.bitwise_count``) where the descriptors are contiguous
+    32-byte rows, else by a byte table; both give the same numbers.
+    """
+    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
+    if a.dtype == np.uint8 and b.dtype == np.uint8 and a.ndim == b.ndim == 2 and a.shape[1] == b.shape[1] == DESCRIPTOR_BYTES:
+        x = np.bitwise_xor(a.view(np.uint64), b.view(np.uint64))
+        return np.bitwise_count(x).sum(axis=1, dtype=np.int32)
     return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1, dtype=np.int32)
+
+
+def pairs_within(a_px: np.ndarray, b_px: np.ndarray, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every (i, j) with ``|a_i - b_j| <= radius_px``, for (N, 2) and (M, 2) pixels, ordered by i then j.
+
+    Found through k-d trees, so the cost follows the pairs found rather than N * M.
+    """
+    if len(a_px) == 0 or len(b_px) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    found = cKDTree(a_px).sparse_distance_matrix(cKDTree(b_px), radius_px, output_type="ndarray")
+    i, j = found["i"].astype(int), found["j"].astype(int)
+    order = np.lexsort((j, i))
+    return i[order], j[order]

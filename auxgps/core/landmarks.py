@@ -4,6 +4,9 @@ Each landmark keeps its ORB descriptor, its position in the local NED frame, the
 position (the inverse covariance, upper triangle), how often it was seen, and how straight down the view was
 that gave its descriptor. Positions are refined in information form, so a landmark seen from several places
 gets its height as well as its ground position.
+
+Landmarks near a place are found through a :class:`GridIndex` (a uniform north/east grid kept as (cell, id)
+pairs sorted by cell), so the cost of a box query grows with what is in the box, not with the size of the map.
 """
 
 from __future__ import annotations
@@ -29,11 +32,133 @@ def unpack_sym(v: np.ndarray) -> np.ndarray:
     return M
 
 
-class LandmarkMap:
-    """A growable column store of landmarks. Ids are row indices and never change."""
+class GridIndex:
+    """Landmark ids by north/east grid cell, for box queries whose cost does not grow with the map.
 
-    def __init__(self, capacity: int = 1024) -> None:
+    Entries are (cell key, id) pairs in two int32 arrays sorted by key; a cell's key is
+    ``row * 2**16 + col`` with ``row, col`` the cell's north and east numbers offset into [0, 2**15), so one
+    row of cells is one contiguous key range and a box is one binary search per row of cells it spans.
+    Places beyond the grid's span (``cell_m * 2**15``, 65 km with 2 m cells) fall into its edge cells: still
+    found, only slower.
+
+    The index follows the map lazily: landmarks added since the last query, and landmarks that
+    :meth:`LandmarkMap.observe` moved into another cell, are merged in (one linear merge, no full sort) at the
+    next query. A moved landmark's old entry stays until the next full rebuild (when stale entries exceed half
+    the live ones); queries check every hit against the current position, so stale entries only cost time.
+    Memory: 8 bytes per entry.
+    """
+
+    _HALF = 1 << 14  # cell numbers are offset by this, so that [-HALF, HALF) cells around 0 fit in 15 bits
+
+    def __init__(self, cell_m: float = 2.0) -> None:
+        if not cell_m > 0:
+            raise ValueError(f"cell_m must be positive, got {cell_m}")
+        self.cell_m = float(cell_m)
+        self.keys = np.zeros(0, np.int32)
+        self.ids = np.zeros(0, np.int32)
+        self.n_indexed = 0  # ids below this have an entry at the cell where they were when it was made
+        self._moved: list[np.ndarray] = []
+        self._n_stale = 0
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.keys.nbytes + self.ids.nbytes)
+
+    def cell(self, coord_m: np.ndarray) -> np.ndarray:
+        """Cell numbers (offset, clipped into the grid) of north or east coordinates, m -> int32."""
+        c = np.floor(np.asarray(coord_m, np.float64) / self.cell_m) + self._HALF
+        return np.clip(c, 0, 2 * self._HALF - 1).astype(np.int32)
+
+    def key(self, p_ned_m: np.ndarray) -> np.ndarray:
+        """(M, >=2) positions -> (M,) int32 cell keys."""
+        return (self.cell(p_ned_m[:, 0]) << 16) | self.cell(p_ned_m[:, 1])
+
+    def note_moved(self, ids: np.ndarray, p_before_ned_m: np.ndarray, p_after_ned_m: np.ndarray) -> None:
+        """Record landmarks whose position changed; those now in another cell get a new entry at the next query."""
+        ids = np.asarray(ids)
+        indexed = ids < self.n_indexed
+        if not np.any(indexed):
+            return
+        changed = indexed & (self.key(p_before_ned_m) != self.key(p_after_ned_m))
+        if np.any(changed):
+            self._moved.append(ids[changed].astype(np.int32))
+
+    def invalidate(self) -> None:
+        """Forget every entry: the next query rebuilds the index from the positions."""
+        self.keys, self.ids = np.zeros(0, np.int32), np.zeros(0, np.int32)
+        self.n_indexed, self._moved, self._n_stale = 0, [], 0
+
+    def sync(self, p_ned_m: np.ndarray) -> None:
+        """Bring the index up to date with the positions ``p_ned_m`` (n, 3) of landmarks 0 .. n-1."""
+        n = len(p_ned_m)
+        if n < self.n_indexed:
+            self.invalidate()
+        if self.n_indexed == n and not self._moved:
+            return
+        new_ids = np.arange(self.n_indexed, n, dtype=np.int32)
+        if self._moved:
+            moved = np.unique(np.concatenate(self._moved))
+            self._n_stale += len(moved)
+            new_ids = np.concatenate([moved, new_ids])
+        self._moved = []
+        self.n_indexed = n
+        if self._n_stale > max(n // 2, 1024):
+            self._rebuild(p_ned_m)
+            return
+        new_keys = self.key(p_ned_m[new_ids])
+        order = np.argsort(new_keys, kind="stable")
+        new_keys, new_ids = new_keys[order], new_ids[order]
+        at = np.searchsorted(self.keys, new_keys, side="right")
+        self.keys = np.insert(self.keys, at, new_keys)
+        self.ids = np.insert(self.ids, at, new_ids)
+
+    def _rebuild(self, p_ned_m: np.ndarray) -> None:
+        keys = self.key(p_ned_m)
+        order = np.argsort(keys, kind="stable").astype(np.int32)
+        self.keys, self.ids = keys[order], order
+        self.n_indexed, self._moved, self._n_stale = len(p_ned_m), [], 0
+
+    def query(self, p_ned_m: np.ndarray, north_range_m: tuple[float, float], east_range_m: tuple[float, float]) -> np.ndarray:
+        """Sorted unique ids of landmarks whose position in ``p_ned_m`` (n, 3) lies inside the box (m, inclusive)."""
+        self.sync(p_ned_m)
+        n0, n1 = north_range_m
+        e0, e1 = east_range_m
+        if not (n0 <= n1 and e0 <= e1) or len(self.keys) == 0:
+            return np.zeros(0, np.int64)
+        # Cells of the bounds widened by a hair: positions are float32, bounds float64, and a landmark on a cell
+        # border must not be missed by rounding. The exact test below removes what the widening lets in.
+        slack = 1e-3 + 1e-6 * max(abs(n0), abs(n1), abs(e0), abs(e1))
+        r0, r1 = self.cell(np.array([n0 - slack, n1 + slack]))
+        c0, c1 = self.cell(np.array([e0 - slack, e1 + slack]))
+        rows = np.arange(r0, r1 + 1, dtype=np.int32) << 16
+        lo = np.searchsorted(self.keys, rows | c0, side="left")
+        hi = np.searchsorted(self.keys, rows | c1, side="right")
+        counts = hi - lo
+        total = int(counts.sum())
+        if total == 0:
+            return np.zeros(0, np.int64)
+        # Concatenated ranges lo[i]:hi[i] without a Python loop.
+        starts = np.repeat(lo - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
+        hits = self.ids[starts + np.arange(total)]
+        p = p_ned_m[hits]
+        inside = (p[:, 0] >= n0) & (p[:, 0] <= n1) & (p[:, 1] >= e0) & (p[:, 1] <= e1)
+        hits = hits[inside]
+        return np.unique(hits).astype(np.int64) if self._n_stale else np.sort(hits).astype(np.int64)
+
+
+class LandmarkMap:
+    """A growable column store of landmarks. Ids are row indices and never change.
+
+    Positions are written through :meth:`add` and :meth:`observe`, which keep the spatial index
+    (:class:`GridIndex`) in step; code that writes ``p_ned_m`` directly must call :meth:`reindex` after.
+    """
+
+    #: Capacity grows by this factor when full: room for amortised appends at a bounded memory slack.
+    GROWTH = 1.5
+
+    def __init__(self, capacity: int = 1024, index: GridIndex | None = None) -> None:
         self._n = 0
+        self.index = index if index is not None else GridIndex()
         self.descriptors = np.zeros((capacity, DESCRIPTOR_BYTES), np.uint8)
         self.p_ned_m = np.zeros((capacity, 3), np.float32)
         self.info_packed = np.zeros((capacity, 6), np.float32)
@@ -47,9 +172,25 @@ class LandmarkMap:
 
     @property
     def nbytes(self) -> int:
-        """Bytes held per stored landmark times the count (capacity slack excluded)."""
+        """Bytes held per stored landmark times the count (capacity slack and index excluded)."""
         per = sum(a.itemsize * (a.size // len(a)) for a in self._columns())
         return per * self._n
+
+    def memory_bytes(self) -> dict:
+        """What the running map holds, bytes: ``columns`` (used rows), ``slack`` (allocated, unused rows),
+        ``index`` (the spatial index) and their ``total``."""
+        used = self.nbytes
+        allocated = sum(a.nbytes for a in self._columns())
+        index = self.index.nbytes
+        return {"columns": used, "slack": allocated - used, "index": index, "total": allocated + index}
+
+    def reindex(self) -> None:
+        """Rebuild the spatial index at the next query (after positions were written directly)."""
+        self.index.invalidate()
+
+    def sync_index(self) -> None:
+        """Bring the spatial index up to date now (after loading a map), not at the first query."""
+        self.index.sync(self.p_ned_m[: self._n])
 
     def _columns(self):
         return (self.descriptors, self.p_ned_m, self.info_packed, self.n_seen, self.view_cos, self.chi2_mean, self.n_visible)
@@ -58,7 +199,7 @@ class LandmarkMap:
         cap = len(self.n_seen)
         if need <= cap:
             return
-        new_cap = max(need, 2 * cap)
+        new_cap = max(need, int(self.GROWTH * cap) + 1)
         for name in ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "chi2_mean", "n_visible"):
             old = getattr(self, name)
             new = np.zeros((new_cap,) + old.shape[1:], old.dtype)
@@ -94,7 +235,9 @@ class LandmarkMap:
         A = unpack_sym(self.info_packed[ids])
         b = np.einsum("nij,nj->ni", A, self.p_ned_m[ids].astype(float)) + b_obs
         A_new = A + A_obs
+        p_before = self.p_ned_m[ids]
         self.p_ned_m[ids] = np.linalg.solve(A_new, b[..., None])[..., 0]
+        self.index.note_moved(ids, p_before, self.p_ned_m[ids])
         self.info_packed[ids] = pack_sym(A_new)
         self.n_seen[ids] = np.minimum(self.n_seen[ids].astype(np.int32) + 1, np.iinfo(np.uint16).max)
         better = view_cos > self.view_cos[ids]
@@ -120,7 +263,11 @@ class LandmarkMap:
         return np.linalg.inv(unpack_sym(self.info_packed[ids]))
 
     def ids_in_box(self, north_range_m: tuple[float, float], east_range_m: tuple[float, float]) -> np.ndarray:
-        """Ids of landmarks inside a north/east box (m)."""
+        """Sorted ids of landmarks inside a north/east box (m, bounds included), through the spatial index."""
+        return self.index.query(self.p_ned_m[: self._n], north_range_m, east_range_m)
+
+    def ids_in_box_scan(self, north_range_m: tuple[float, float], east_range_m: tuple[float, float]) -> np.ndarray:
+        """The same as :meth:`ids_in_box` by a scan of every landmark: the reference the index is tested against."""
         p = self.p_ned_m[: self._n]
         mask = (
             (p[:, 0] >= north_range_m[0])

@@ -14,9 +14,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
 
 from auxgps.core.camera import CameraPose, PinholeCamera
-from auxgps.core.features import Features, hamming
+from auxgps.core.features import Features, hamming, pairs_within
 from auxgps.core.landmarks import LandmarkMap
 
 
@@ -273,8 +275,8 @@ class Localiser:
         inside = front & self.camera.in_image(np.nan_to_num(uv, nan=-1e6), margin)
         if not np.any(inside):
             return 0.0
-        d = np.linalg.norm(uv[inside][:, None, :] - features.uv_px[None, :, :], axis=2)
-        return float(np.mean(d.min(axis=1) <= margin))
+        near = cKDTree(features.uv_px).query_ball_point(uv[inside], margin, return_length=True) if len(features) else 0
+        return float(np.mean(near > 0))
 
     def _match_guided(self, features: Features, cand: np.ndarray, pose: CameraPose, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
         """Every (feature, landmark) pair whose predicted pixel is within ``radius_px`` and whose descriptors agree."""
@@ -283,8 +285,7 @@ class Localiser:
         cand, uv = cand[keep], uv[keep]
         if len(cand) == 0:
             return np.zeros(0, int), np.zeros(0, int)
-        d_px = np.linalg.norm(features.uv_px[:, None, :] - uv[None, :, :], axis=2)
-        fi, ci = np.nonzero(d_px <= radius_px)
+        fi, ci = pairs_within(features.uv_px, uv, radius_px)
         ok = hamming(features.descriptors[fi], self.map.descriptors[cand[ci]]) <= self.cfg.positioning.max_hamming
         return fi[ok], cand[ci[ok]]
 
@@ -295,12 +296,12 @@ class Localiser:
         K = len(hyp)
         # Seeds: every correspondence when few, else an even spread (deterministic).
         seeds = np.arange(K) if K <= cfg.max_seeds else np.linspace(0, K - 1, cfg.max_seeds).astype(int)
-        dist = np.linalg.norm(hyp[seeds, None, :] - hyp[None, :, :], axis=2)  # (S, K)
-        members = dist <= tau[None, :]
-        hit = np.zeros((len(seeds), n_feat), bool)
-        rows, cols = np.nonzero(members)
-        hit[rows, feat_i[cols]] = True
-        return seeds, hit.sum(axis=1), members
+        members = cdist(hyp[seeds], hyp) <= tau[None, :]  # (S, K); cdist: one pass, the same numbers as a norm
+        # Support in distinct features: members grouped by feature, one vote per group with any member.
+        order = np.argsort(feat_i, kind="stable")
+        starts = np.flatnonzero(np.r_[True, feat_i[order][1:] != feat_i[order][:-1]])
+        support = np.logical_or.reduceat(members[:, order], starts, axis=1).sum(axis=1)
+        return seeds, support, members
 
     @staticmethod
     def _one_per_feature(member_row: np.ndarray, feat_i: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -322,6 +323,12 @@ class Localiser:
         lands in the position covariance; where it can (objects spread over the view), both get better.
         Inliers are re-selected by reprojection error.
         """
+        idx = np.flatnonzero(inl)
+        if len(idx) < len(inl):  # only inliers can stay inliers: solve on them alone (the same numbers, less work)
+            p, cov, inl_sub, attitude_m2 = self._refine(p0, corr.subset(idx), np.ones(len(idx), bool), alt_m)
+            inl = np.zeros(len(inl), bool)
+            inl[idx] = inl_sub
+            return p, cov, inl, attitude_m2
         cfg = self.cfg.positioning
         noise = self.cfg.noise
         f = self.camera.focal_px

@@ -11,9 +11,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from auxgps.core.camera import PinholeCamera
-from auxgps.core.features import Features, hamming
+from auxgps.core.features import Features, hamming, pairs_within
 from auxgps.core.geometry import intersect_rays_with_horizontal_plane
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.nav import NavSample
@@ -125,25 +126,24 @@ class Mapper:
         """
         cfg = self.cfg.mapping
         none = np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-        offsets = features.uv_px[:, None, :] - uv_lm[None, :, :]  # (N, C, 2)
-        d_px = np.linalg.norm(offsets, axis=2)
-        fi, ci = np.nonzero(d_px <= cfg.match_radius_px)
+        fi, ci = pairs_within(features.uv_px, uv_lm, cfg.match_radius_px)
         if len(fi) == 0:
             return none
+        offsets = features.uv_px[fi] - uv_lm[ci]  # (P, 2) px
         ham = hamming(features.descriptors[fi], self.map.descriptors[cand[ci]])
         ok = ham <= cfg.max_hamming
-        fi, ci, ham = fi[ok], ci[ok], ham[ok]
+        fi, ci, ham, offsets = fi[ok], ci[ok], ham[ok], offsets[ok]
         if len(fi) == 0:
             return none
         lm = cand[ci]
         cov = self.map.covariance(lm)
-        shift = self._common_shift(offsets[fi, ci], self.map.n_seen[lm] >= 3)
+        shift = self._common_shift(offsets, self.map.n_seen[lm] >= 3)
         # Each landmark's own pixel uncertainty: its largest position sigma seen from this range.
         L = self.map.p_ned_m[lm].astype(float)
         range_m = np.linalg.norm(L - c, axis=1)
         sigma_lm_px = np.sqrt(np.linalg.eigvalsh(cov)[:, -1]) / range_m * self.camera.focal_px
         radius = np.minimum(3.0 * np.hypot(sigma_px[fi] * 2.0, sigma_lm_px), cfg.match_radius_px)
-        d_shifted = np.linalg.norm(offsets[fi, ci] - shift, axis=1)
+        d_shifted = np.linalg.norm(offsets - shift, axis=1)
         m2 = ray_mahalanobis2(L, cov, c, rays[fi], self._sigma_perp(range_m, sigma_px[fi]))
         ok = (d_shifted <= radius) & (m2 <= cfg.gate_chi2)
         fi, ci, ham, m2, d_shifted = fi[ok], ci[ok], ham[ok], m2[ok], d_shifted[ok]
@@ -169,7 +169,7 @@ class Mapper:
         off = offsets_px[established]
         if len(off) < 3:
             return np.zeros(2)
-        votes = (np.linalg.norm(off[:, None, :] - off[None, :, :], axis=2) <= agree_px).sum(axis=1)
+        votes = cKDTree(off).query_ball_point(off, agree_px, return_length=True)  # pairs within agree_px, itself included
         best = int(np.argmax(votes))
         if votes[best] < 3:
             return np.zeros(2)

@@ -103,4 +103,5 @@ def load_map(path: Path | str) -> tuple[LandmarkMap, LocalFrame]:
     lm._n = n
     if not np.all(np.isfinite(lm.p_ned_m[:n])) or not np.all(np.isfinite(lm.info_packed[:n])):
         raise MapError(f"{path}: map holds non-finite positions or information")
+    lm.sync_index()  # built here, so that the first frame after loading is not the one that pays for it
     return lm, frame
