@@ -119,6 +119,7 @@ def _run(args) -> int:
         duration_s=args.duration,
         gps_input_rate_hz=args.rate,
         gps_delay_s=args.gps_delay_ms / 1000.0,
+        gps1_lag_s=args.gps1_lag_ms / 1000.0,
     )
     return Companion(load_pipeline_config(args.config), opts).run()
 
@@ -226,6 +227,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=_positive(float), default=10.0, help="GPS_INPUT rate, Hz (default 10)")
     p.add_argument("--gps-delay-ms", type=_delay_ms, default=100,
                    help="each GPS_INPUT describes the vehicle this long before it is sent; set the autopilot's GPS2_DELAY_MS to the same (default 100)")
+    p.add_argument("--gps1-lag-ms", type=_delay_ms, default=100,
+                   help="how old a GPS1 reading is when it arrives: its receiver's lag (default 100, as ArduPilot SITL's SIM_GPS1_LAG_MS)")
     p.set_defaults(func=_run)
 
     p = sub.add_parser("bench", help="time the pipeline per frame on one thread, with maps up to a million landmarks, beside the thesis' method")

@@ -46,6 +46,7 @@ class RunOptions:
     duration_s: float | None = None
     gps_input_rate_hz: float = 10.0
     gps_delay_s: float = 0.1  # GPS_INPUT describes the vehicle this long ago: the autopilot's GPS2_DELAY_MS
+    gps1_lag_s: float = 0.1  # a GPS1 reading describes the vehicle this long before it arrives (SITL: SIM_GPS1_LAG_MS)
 
 
 class CsvLog:
@@ -144,9 +145,10 @@ class Companion:
             self._home_alt_amsl_m = self.frame.alt_amsl_m
             log.info("local frame anchored at %.7f, %.7f, %.1f m AMSL", rec.lat_deg, rec.lon_deg, self.frame.alt_amsl_m)
         p = self.frame.to_ned(lat_deg=rec.lat_deg, lon_deg=rec.lon_deg, alt_amsl_m=rec.alt_amsl_m)
-        est = self.filter.estimate() if self.filter is not None else None
+        t_meas = rec.t_s - self.opts.gps1_lag_s  # when the receiver measured it
+        est = self.filter.estimate_at(t_meas) if self.filter is not None else None
         self.supervisor.gps1(
-            Gps1Sample(rec.t_s, rec.fix_type, rec.satellites, p, rec.h_acc_m),
+            Gps1Sample(t_meas, rec.fix_type, rec.satellites, p, rec.h_acc_m),
             est.p_ned_m if est is not None else None,
             est.cov_p_m2[:2, :2] if est is not None else None,
         )
@@ -156,14 +158,14 @@ class Companion:
         if not self.supervisor.gps1_trusted:
             self._gps1_sats = None
             return
-        self._gps1_ned = (rec.t_s, p)
+        self._gps1_ned = (t_meas, p)
         self._gps1_sats = rec.satellites
         sigma = max(rec.h_acc_m, self.cfg.noise.gps_horizontal_m)
         if self.filter is None:
-            self.filter = NavFilter(self.cfg.fusion, rec.t_s, p, np.zeros(3), sigma, 1.0)
+            self.filter = NavFilter(self.cfg.fusion, t_meas, p, np.zeros(3), sigma, 1.0)
         else:
-            self.filter.update_position(rec.t_s, p[:2], np.eye(2) * sigma**2)
-        self._last_correction_t = rec.t_s
+            self.filter.update_position(t_meas, p[:2], np.eye(2) * sigma**2)
+        self._last_correction_t = t_meas
 
     def _attitude_at(self, t_s: float) -> np.ndarray:
         """The attitude sample nearest to ``t_s`` (called with the lock held)."""
@@ -218,23 +220,32 @@ class Companion:
             alt = self._rel_alt_m
             prior = self.filter.prior(frame.t_s)
             mapping = self.supervisor.gps1_trusted and self._gps1_ned is not None
-            gps1 = self._gps1_ned[1] if mapping else None
+            # Where GPS1 puts the camera at the frame's time: the filter, which fuses GPS1 at its measurement
+            # time with the IMU, interpolates between GPS1's 5 Hz readings and carries its lag.
+            gps1 = self.filter.estimate_at(frame.t_s).p_ned_m if mapping else None
         if mapping:
             self.mapper.process(feats, NavSample(frame.t_s, gps1, alt, R))
         res = self.localiser.locate(feats, frame.t_s, R, alt, prior)
         if not isinstance(res, Fix):
-            self.log.row("fixes", t_s=frame.t_s, kind="none", reason=res.reason, n=f"{res.n_inliers}", m2="", accepted="")
+            self.log.row("fixes", t_s=frame.t_s, kind="none", reason=res.reason, n=f"{res.n_inliers}", m2="", accepted="",
+                         lat_deg="", lon_deg="", sigma_m="")
             return
         with self._lock:
             if mapping:  # a self-check while GPS1 is trusted: how far the visual fix is from the filter
                 est = self.filter.estimate()
                 self.log.row("fixes", t_s=frame.t_s, kind="self-check", reason=f"{np.linalg.norm(res.p_ned_m[:2] - est.p_ned_m[:2]):.3f} m",
-                             n=res.n_inliers, m2="", accepted="")
+                             n=res.n_inliers, m2="", accepted="", **self._fix_columns(res))
                 return
             d = self.filter.update_position(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2])
             if d.accepted:
                 self._last_correction_t = res.t_s
-        self.log.row("fixes", t_s=frame.t_s, kind="visual", reason=d.reason, n=res.n_inliers, m2=f"{d.mahalanobis2:.2f}", accepted=d.accepted)
+        self.log.row("fixes", t_s=frame.t_s, kind="visual", reason=d.reason, n=res.n_inliers, m2=f"{d.mahalanobis2:.2f}", accepted=d.accepted,
+                     **self._fix_columns(res))
+
+    def _fix_columns(self, res: Fix) -> dict:
+        """A fix's latitude and longitude (deg) and its horizontal one-sigma (m), for the log."""
+        lat_deg, lon_deg, _ = self.frame.to_geodetic(res.p_ned_m)
+        return {"lat_deg": float(lat_deg), "lon_deg": float(lon_deg), "sigma_m": round(res.sigma_h_m, 3)}
 
     def run(self) -> int:
         self.link.start()

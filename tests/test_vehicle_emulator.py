@@ -232,8 +232,9 @@ def test_failsafe_in_the_vehicle_when_gps1_fails_without_gps2():
     while not sim.failsafe and sim.t_s < 60:
         sim.step()
     failsafe_t_s = sim.t_s - sim.dt_s
-    # 8 s after the last usable fix, which GPS1 (5 Hz) sent up to 0.2 s before the failure
-    assert 8.0 - 0.2 - atol_t_s <= failsafe_t_s - sim.failure_t_s < 8.0
+    # 8 s after the last usable fix was measured: GPS1 (5 Hz) sent it up to 0.2 s before the failure, describing
+    # the vehicle GPS1_LAG_S before it was sent
+    assert 8.0 - 0.2 - emu.GPS1_LAG_S - atol_t_s <= failsafe_t_s - sim.failure_t_s < 8.0 - emu.GPS1_LAG_S + atol_t_s
     assert sim.mode is emu.CopterMode.LAND
     assert (MAV.MAV_SEVERITY_CRITICAL, "EKF Failsafe: changed to LAND Mode") in sim.outbox
 

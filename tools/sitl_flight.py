@@ -14,6 +14,7 @@ horizontal error after the failure (rms, max), and whether GPS2 carried a 3D fix
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import math
 import os
@@ -24,6 +25,7 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("MAVLINK20", "1")
+import numpy as np  # noqa: E402
 import pymap3d  # noqa: E402
 from pymavlink import mavutil  # noqa: E402
 
@@ -43,6 +45,7 @@ class GroundStation:
         for mid, hz in ((33, 10), (108, 10), (24, 5), (124, 5)):
             self.c.mav.command_long_send(1, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, mid, 1e6 / hz, 0, 0, 0, 0, 0)
         self.last = {}
+        self.track: list[tuple[float, float, float]] = []  # (monotonic s, north m, east m): the truth, to score
 
     def pump(self, seconds):
         t_end = time.time() + seconds
@@ -53,6 +56,8 @@ class GroundStation:
             if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() != M.MAV_COMP_ID_AUTOPILOT1:
                 continue  # auxgps's own heartbeat, forwarded by the autopilot
             self.last[msg.get_type()] = msg
+            if msg.get_type() == "SIM_STATE":
+                self.track.append((time.monotonic(), *self.ne(msg.lat_int / 1e7, msg.lon_int / 1e7)))
             if msg.get_type() == "STATUSTEXT" and "Arm" not in msg.text:
                 print("AP:", msg.text, file=sys.stderr, flush=True)
 
@@ -71,6 +76,34 @@ class GroundStation:
     def armed(self):
         hb = self.last.get("HEARTBEAT")
         return bool(hb and hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+def score_logs(gs: GroundStation, run_dir: Path, failed_at_mono: float, delay_s: float) -> dict:
+    """auxgps's own logs against the truth track (one machine, one monotonic clock): its visual fixes and the
+    GPS_INPUT it sent while GPS1 was down. A GPS_INPUT describes the vehicle ``delay_s`` before it was sent."""
+    track = np.array(gs.track)
+
+    def errors(rows, t_key, shift_s):
+        t = np.array([float(r[t_key]) for r in rows]) - shift_s
+        ne = np.array([gs.ne(float(r["lat_deg"]), float(r["lon_deg"])) for r in rows]).reshape(-1, 2)
+        keep = (t >= failed_at_mono) & (t <= track[-1, 0])
+        truth = np.column_stack([np.interp(t[keep], track[:, 0], track[:, k]) for k in (1, 2)])
+        return np.linalg.norm(ne[keep] - truth, axis=1), keep
+
+    def stats(e):
+        return {"count": int(len(e)), "rms_m": round(float(np.sqrt(np.mean(e**2))), 3) if len(e) else None,
+                "p95_m": round(float(np.percentile(e, 95)), 3) if len(e) else None, "max_m": round(float(e.max()), 3) if len(e) else None}
+
+    fixes = [r for r in csv.DictReader(open(run_dir / "fixes.csv")) if r["kind"] == "visual"]
+    fix_err, keep = errors(fixes, "t_s", 0.0)
+    accepted = np.array([r["accepted"] == "True" for r in fixes])[keep]
+    sent = [r for r in csv.DictReader(open(run_dir / "gps_input.csv")) if r["fix_type"] == "3"]
+    out_err, keep = errors(sent, "t_s", delay_s)
+    sigma = np.array([float(r["horiz_accuracy_m"]) for r in sent])[keep]
+    return {
+        "fixes": {**stats(fix_err), "accepted_over_0_5m": int(np.sum(accepted & (fix_err > 0.5)))},
+        "gps_input_3d": {**stats(out_err), "within_3sigma": round(float(np.mean(out_err <= 3 * sigma)), 3) if len(out_err) else None},
+    }
 
 
 def fly(gs: GroundStation) -> dict:
@@ -107,6 +140,7 @@ def fly(gs: GroundStation) -> dict:
         if i == FAIL_AFTER_WAYPOINT:
             gs.c.mav.param_set_send(1, 1, b"SIM_GPS1_ENABLE", 0, M.MAV_PARAM_TYPE_REAL32)
             failed_at = time.time()
+            gs.failed_at_mono = time.monotonic()
     gs.c.set_mode("RTL")
     t_rtl = time.time()
     while time.time() - t_rtl < 180:
@@ -154,6 +188,9 @@ def main(argv=None) -> int:
                                 "--camera", f"sim:{args.world}", "--log-dir", str(out / "run"), "--duration", "1500"],
                                cwd=REPO, stdout=open(out / "run.log", "w"), stderr=subprocess.STDOUT)
         result = fly(gs)
+        run.terminate()
+        run.wait(timeout=20)
+        result["auxgps"] = score_logs(gs, out / "run", gs.failed_at_mono, 0.1)
     finally:
         for p in (run, sitl):
             if p is not None and p.poll() is None:

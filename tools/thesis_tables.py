@@ -91,12 +91,44 @@ def main(argv=None) -> int:
             else ["world", "thesis (m)", "ours, same figure (m)", "ours per-frame RMS (m)", "p95 (m)", "max (m)", "availability"]
         )
         lines += [f"## Table {number}: {title}", "", tabulate(rows, headers=headers, tablefmt="github"), ""]
+    lines += _acceptance(summary)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines))
     print("\n".join(lines))
     print(f"wrote {out}")
     return 0
+
+
+# The pipeline issue's and the filter issue's targets, checked on every scenario flown above.
+TARGETS = "landmark RMS <= 0.10, fix RMS <= 0.10, p95 <= 0.20, availability >= 0.95, same colour: no fix over 0.5 m; fused RMS <= 0.08, max <= 0.30, within 3 sigma >= 0.97"
+
+
+def _acceptance(summary) -> list[str]:
+    rows, failures = [], 0
+    pairs = sorted({(w, alt) for _, _, alt, cells in THESIS.values() for w in cells}, key=lambda x: (x[1], x[0]))
+    for world, alt in pairs:
+        s = summary(world, alt)
+        lm, fx, fu = s["landmarks"], s["fixes"], s.get("fused") or {}
+        checks = {
+            "landmarks": lm["rms_m"] is not None and lm["rms_m"] <= 0.10,
+            "fix RMS": fx["rms_m"] is not None and fx["rms_m"] <= 0.10,
+            "fix p95": fx["p95_m"] is not None and fx["p95_m"] <= 0.20,
+            "availability": fx["availability"] is not None and fx["availability"] >= 0.95,
+            "over 0.5 m": "same" not in world or fx["over_0_5m"] == 0,
+            "fused RMS": fu.get("rms_m") is not None and fu["rms_m"] <= 0.08,
+            "fused max": fu.get("max_m") is not None and fu["max_m"] <= 0.30,
+            "3 sigma": fu.get("within_3sigma") is not None and fu["within_3sigma"] >= 0.97,
+        }
+        missed = [k for k, ok in checks.items() if not ok]
+        failures += bool(missed)
+        rows.append([f"{world} @ {alt} m", _f(lm["rms_m"]), _f(fx["rms_m"]), _f(fx["p95_m"]), _f(fx["availability"]), fx["over_0_5m"],
+                     _f(fu.get("rms_m")), _f(fu.get("max_m")), _f(fu.get("within_3sigma")), s.get("gate", {}).get("accepted_over_0_5m", "-"),
+                     ", ".join(missed) or "all met"])
+    headers = ["scenario", "landmark RMS", "fix RMS", "fix p95", "availability", "fixes > 0.5 m", "fused RMS", "fused max",
+               "within 3 sigma", "accepted > 0.5 m", "targets missed"]
+    return ["## The targets, scenario by scenario", "", f"Targets (m): {TARGETS}.", "",
+            tabulate(rows, headers=headers, tablefmt="github"), "", f"{failures} of {len(pairs)} scenarios miss a target.", ""]
 
 
 def _f(x) -> str:

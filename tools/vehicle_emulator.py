@@ -29,6 +29,7 @@ MAVLink integer units only in the message builders.
 from __future__ import annotations
 
 import argparse
+import collections
 import enum
 import json
 import logging
@@ -106,6 +107,7 @@ SWITCH_2_MORE_SATS_S = 5.0
 # The emulated vehicle's own choices
 DEAD_RECKON_S = 2.0
 GPS2_DELAY_MS_DEFAULT = 100  # as config/ardupilot/auxgps-gps2.parm sets it
+GPS1_LAG_S = 0.1  # SITL's default SIM_GPS1_LAG_MS: a GPS1 reading describes the vehicle this long before it is sent
 FAILSAFE_S = 8.0
 GPS_FRESH_S = 0.5  # a fix this old still counts as "gps" in the log's nav state
 LAND_SPEED_M_S = 0.5
@@ -555,6 +557,7 @@ class VehicleSim:
         self._guide: WaypointGuidance | None = None
         self._land_target_ne_m = np.zeros(2)
         self._gps1_period_steps = max(1, round(1.0 / (self.noise.gps_rate_hz * self.dt_s)))
+        self._motion_history: collections.deque = collections.deque(maxlen=max(1, round(GPS1_LAG_S / self.dt_s)) + 1)
         self._baro_period_steps = max(1, round(1.0 / (self.noise.baro_rate_hz * self.dt_s)))
         self._sample_period_steps = max(1, round(SAMPLE_PERIOD_S / self.dt_s))
         self._last_prearm_report_t_s: float | None = None
@@ -625,8 +628,8 @@ class VehicleSim:
         self._update_primary(t_s)
         if instance == self.selector.primary and self.gps[instance].usable(t_s):
             # The EKF fuses a GPS reading against its state ``lag`` ago and carries it forward (GPS2_DELAY_MS;
-            # 0 means ArduPilot's 200 ms). The emulated GPS1 is the truth at arrival.
-            lag_s = 0.0 if instance == 0 else (int(self.params["GPS2_DELAY_MS"]) or 200) / 1000.0
+            # 0 means ArduPilot's 200 ms; GPS1's lag is known to it from the receiver type).
+            lag_s = GPS1_LAG_S if instance == 0 else (int(self.params["GPS2_DELAY_MS"]) or 200) / 1000.0
             self.estimator.on_fix(t_s - lag_s, reading.p_ned_m, reading.v_ned_m_s)
 
     def _update_primary(self, t_s: float) -> None:
@@ -643,14 +646,17 @@ class VehicleSim:
             self.switch_to_gps2_t_s = t_s
 
     def _gps1_tick(self, t_s: float) -> None:
+        self._motion_history.append((self.craft.p_ned_m.copy(), self.craft.v_ned_m_s.copy()))
         if self.step_index % self._gps1_period_steps == 0:
             self._on_gps_reading(0, self._gps1_reading(), t_s)
 
     def _gps1_reading(self) -> GpsReading:
-        """SITL's GPS1: the truth plus white noise; fix 6 and 10 satellites, or fix 0 and 3 when disabled."""
+        """SITL's GPS1: the truth ``GPS1_LAG_S`` ago plus white noise; fix 6 and 10 satellites, or fix 0 and 3
+        when disabled."""
         sigma_m = np.array([self.noise.gps_horizontal_m, self.noise.gps_horizontal_m, self.noise.gps_vertical_m])
-        p_ned_m = self.craft.p_ned_m + self._rng_gps1.standard_normal(3) * sigma_m
-        v_ned_m_s = self.craft.v_ned_m_s + self._rng_gps1.standard_normal(3) * GPS1_VELOCITY_NOISE_M_S
+        p_then, v_then = self._motion_history[0]  # GPS1_LAG_S ago (or the start)
+        p_ned_m = p_then + self._rng_gps1.standard_normal(3) * sigma_m
+        v_ned_m_s = v_then + self._rng_gps1.standard_normal(3) * GPS1_VELOCITY_NOISE_M_S
         lat_deg, lon_deg, alt_m = self.frame.to_geodetic(p_ned_m)
         enabled = bool(self.params["SIM_GPS1_ENABLE"])
         return GpsReading(GPS1_HEALTHY_FIX if enabled else GPS1_FAILED_FIX, int(round(float(lat_deg) * 1e7)),
