@@ -78,11 +78,15 @@ def _eval(args) -> int:
         progress=not args.quiet,
     )
     print(summary_table(summary))
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(summary, indent=2))
-        print(f"wrote {args.json}")
+    _write_json(args.json, summary)
     return 0
+
+
+def _write_json(path: str | None, figures: dict) -> None:
+    if path:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(json.dumps(figures, indent=2))
+        print(f"wrote {path}")
 
 
 def _demo(args) -> int:
@@ -93,9 +97,7 @@ def _demo(args) -> int:
     figures = run_demo(str(DEMO_WORLD), out_dir=args.out_dir)
     print(json.dumps(figures, indent=2))
     print(f"report: {args.out_dir}/report.png, {args.out_dir}/report.json")
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(figures, indent=2))
+    _write_json(args.json, figures)
     return 0
 
 
@@ -162,10 +164,7 @@ def _bench(args) -> int:
 
     figures = run_bench(load_pipeline_config(args.config), sim, cfg, tuple(m for m in methods if m is not None), progress)
     print(bench_report(figures))
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(figures, indent=2))
-        print(f"wrote {args.json}")
+    _write_json(args.json, figures)
     return 0
 
 

@@ -231,8 +231,8 @@ class Companion:
                          lat_deg="", lon_deg="", sigma_m="")
             return
         with self._lock:
-            if mapping:  # a self-check while GPS1 is trusted: how far the visual fix is from the filter
-                est = self.filter.estimate()
+            if mapping:  # a self-check while GPS1 is trusted: how far the visual fix is from the filter, then
+                est = self.filter.estimate_at(res.t_s)
                 self.log.row("fixes", t_s=frame.t_s, kind="self-check", reason=f"{np.linalg.norm(res.p_ned_m[:2] - est.p_ned_m[:2]):.3f} m",
                              n=res.n_inliers, m2="", accepted="", **self._fix_columns(res))
                 return

@@ -64,3 +64,12 @@ def test_gps_input_fields_as_ardupilot_reads_them():
     assert (msg.lat, msg.lon) == (473977420, 85455940) and msg.alt == pytest.approx(503.25)
     assert (msg.time_week, msg.time_week_ms, msg.fix_type, msg.satellites_visible) == (2446, 86418000, 3, 6)
     assert (msg.vn, msg.ve) == pytest.approx((1.0, -0.5)) and msg.horiz_accuracy == pytest.approx(0.12)
+
+
+def test_boot_clock_follows_an_autopilot_clock_that_runs_slow():
+    """A simulator at 0.9 of real time: the mapped stamps stay within the window's drift of their arrivals."""
+    clock = BootClock(window_s=2.0)
+    arrivals = np.arange(0.0, 300.0, 0.02)
+    mapped = [clock.to_local(int(round(t * 0.9 * 1000)), t) for t in arrivals]
+    lag_s = arrivals - np.array(mapped)
+    assert np.all(lag_s >= -1e-9) and lag_s.max() <= 0.1 * 2.0 + 0.02  # at most the drift over one window

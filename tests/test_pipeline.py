@@ -87,6 +87,29 @@ def test_identical_cubes_one_in_view_give_no_fix(camera, pipeline):
     assert isinstance(res, Fix) and np.linalg.norm(res.p_ned_m[:2] - [0.0, -1.5]) < atol_fix_m
 
 
+def test_a_confident_but_biased_prior_does_not_outvote_the_image(camera, pipeline):
+    """Two 1 m cubes whose bottom corners look like the top corners above them (as from straight above).
+
+    Seen off-nadir, the bottom features taken for the top landmarks make a second reading, 0.3 m from the truth
+    (with the attitude correction it needs), with half the inliers. A filter that a few such fixes pulled there believes itself to 3 cm; the image must
+    still win: the fix is the true position, not the prior's.
+    """
+    top = np.array([[n, e, -1.0] for n in (-0.5, 0.5) for e in (-0.5, 0.5)])
+    cubes = [top + [-1.5, 2.0, 0.0], top + [1.5, 2.0, 0.0]]
+    tops = np.vstack(cubes)
+    bottoms = tops + [0.0, 0.0, 1.0]
+    lm, desc = synthetic_map(camera, np.vstack([tops, bottoms]))
+    lm.descriptors[8:16] = lm.descriptors[:8]
+    p_true = np.array([0.0, -6.0, -15.0])
+    pose = CameraPose(p_true, R_BODY_CAM_DOWN)
+    feats = view(camera, pose, np.vstack([tops, bottoms]), lm.descriptors[:16])
+    wrong_shift = np.array([0.0, 0.38])  # beyond the bottoms-as-tops reading, as a filter pulled by such fixes would be
+    prior = PositionPrior(p_true + np.array([*wrong_shift, 0.0]), 0.03)
+    res = locate(pipeline, camera, lm, feats, np.eye(3), 15.0, prior)
+    assert isinstance(res, Fix) and np.linalg.norm(res.p_ned_m[:2] - p_true[:2]) < atol_fix_m
+    assert res.n_inliers == 16
+
+
 @pytest.mark.parametrize("image", [np.zeros((720, 1280, 3), np.uint8), np.full((720, 1280), 128, np.uint8)])
 def test_featureless_frame_gives_no_fix(camera, pipeline, scene, image):
     _, lm, _ = scene

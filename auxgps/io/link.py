@@ -11,6 +11,7 @@ import logging
 import os
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
@@ -85,17 +86,25 @@ class Truth:
 class BootClock:
     """Maps the autopilot's boot-time stamps onto this process's monotonic clock.
 
-    The offset is the smallest (arrival - stamp) seen: the message that travelled fastest.
+    The offset is the smallest (arrival - stamp) seen over the last ``window_s`` of arrivals: the message that
+    travelled fastest lately. A window, not all time: the autopilot's clock may run at another rate than ours
+    (a simulator that falls behind real time does), and an offset fixed at the start would then drift away from
+    the arrival times that frames and the GPS_INPUT timer live on.
     """
 
-    def __init__(self) -> None:
-        self._offset: float | None = None
+    def __init__(self, window_s: float = 2.0) -> None:
+        self.window_s = window_s
+        self._recent: deque = deque()  # (arrival_s, offset_s), offsets increasing from the left
 
     def to_local(self, time_boot_ms: int, arrival_s: float) -> float:
         offset = arrival_s - time_boot_ms / 1000.0
-        if self._offset is None or offset < self._offset:
-            self._offset = offset
-        return time_boot_ms / 1000.0 + self._offset
+        recent = self._recent
+        while recent and recent[-1][1] >= offset:
+            recent.pop()  # never the minimum again: a later arrival with a smaller offset
+        recent.append((arrival_s, offset))
+        while recent[0][0] < arrival_s - self.window_s:
+            recent.popleft()
+        return time_boot_ms / 1000.0 + recent[0][1]
 
 
 def decode(msg, clock: BootClock, arrival_s: float):
