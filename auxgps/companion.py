@@ -236,7 +236,7 @@ class Companion:
                 self.log.row("fixes", t_s=frame.t_s, kind="self-check", reason=f"{np.linalg.norm(res.p_ned_m[:2] - est.p_ned_m[:2]):.3f} m",
                              n=res.n_inliers, m2="", accepted="", **self._fix_columns(res))
                 return
-            d = self.filter.update_position(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2])
+            d = self.filter.update_position(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2], visual=True)
             if d.accepted:
                 self._last_correction_t = res.t_s
         self.log.row("fixes", t_s=frame.t_s, kind="visual", reason=d.reason, n=res.n_inliers, m2=f"{d.mahalanobis2:.2f}", accepted=d.accepted,

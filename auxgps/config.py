@@ -124,6 +124,9 @@ class FusionConfig:
     accel_noise_m_s2_sqrt_hz: Positive = 0.02
     accel_bias_sigma_m_s2: Positive = 0.2
     accel_bias_walk_m_s2_sqrt_s: NonNegative = 0.002
+    # The error visual fixes share for seconds (attitude error, map error): one sigma and correlation time.
+    fix_bias_sigma_m: Positive = 0.1
+    fix_bias_tau_s: Positive = 10.0
     gate_chi2: Positive = 9.21  # 99% for the 2 degrees of freedom of a horizontal fix
     history_s: Annotated[float, Field(gt=0, le=5)] = 0.5
     reinit_count: Annotated[int, Field(ge=2)] = 5

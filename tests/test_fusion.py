@@ -151,9 +151,9 @@ def test_injected_wrong_cube_fixes_are_gated_on_a_simulated_flight():
             truth = traj.p_ned_m[i, :2]
             if k % 5 == 4:
                 offset = rng.uniform(4.0, 9.0) * np.array([np.cos(k), np.sin(k)])
-                wrong_accepted += f.update_position(t, truth + offset, np.eye(2) * 0.01).accepted
+                wrong_accepted += f.update_position(t, truth + offset, np.eye(2) * 0.01, visual=True).accepted
             else:
-                f.update_position(t, truth + rng.normal(0, 0.07, 2), np.eye(2) * 0.1**2)
+                f.update_position(t, truth + rng.normal(0, 0.07, 2), np.eye(2) * 0.1**2, visual=True)
         worst = max(worst, float(np.linalg.norm(f.estimate().p_ned_m[:2] - traj.p_ned_m[i, :2])))
     assert wrong_accepted == 0
     assert worst <= 0.30
@@ -174,3 +174,19 @@ def test_estimate_at_an_earlier_time_is_the_state_then():
     # between samples: carried by the velocity; at the newest sample: the estimate itself
     assert np.allclose(f.estimate_at(0.705).p_ned_m[:2], [0.705, -0.3525], atol=1e-9)
     assert np.allclose(f.estimate_at(f.t_s).p_ned_m, f.estimate().p_ned_m, atol=atol)
+
+
+def test_visual_fixes_cannot_make_the_filter_surer_than_their_shared_error():
+    """Twenty fixes a second for a minute: as GPS readings they would pin the estimate to millimetres; as visual
+    fixes, which share a slowly varying error (fix_bias_sigma_m), the reported sigma stays near that error."""
+    cfg = FusionConfig()
+    as_gps, as_visual = make(cfg), make(cfg)
+    for k in range(1, 6001):
+        t = 0.01 * k
+        for f in (as_gps, as_visual):
+            f.propagate(hover(t))
+        if k % 5 == 0:
+            as_gps.update_position(t, np.zeros(2), np.eye(2) * 0.05**2)
+            as_visual.update_position(t, np.zeros(2), np.eye(2) * 0.05**2, visual=True)
+    assert as_gps.estimate().sigma_h_m < 0.02
+    assert as_visual.estimate().sigma_h_m >= 0.5 * cfg.fix_bias_sigma_m

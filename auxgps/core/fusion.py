@@ -1,9 +1,14 @@
 """Fusion of visual fixes with the autopilot's IMU and attitude: an extended Kalman filter on filterpy.
 
-State (9): position NED (m), velocity NED (m/s), accelerometer bias in the body frame (m/s^2). Between fixes the
+State (11): position NED (m), velocity NED (m/s), accelerometer bias in the body frame (m/s^2), and the north/east
+error that visual fixes share (m). Between fixes the
 filter is driven by the IMU: specific force minus the bias, rotated by the attitude, plus gravity. The bias is
 estimated because a tenth of a m/s^2 left in the specific force, integrated over a few seconds without a fix,
-is metres; it is observable from the fixes as soon as the vehicle turns.
+is metres; it is observable from the fixes as soon as the vehicle turns. The shared fix error is what does not
+average out over frames: an error in the autopilot's attitude that lasts seconds (0.3 degrees is 8 cm at 15 m)
+and the map's own errors. Fusing twenty fixes a second as if their errors were independent would make the filter
+believe itself to a centimetre, gate out good fixes and report an accuracy that the truth does not bear out; as a
+first-order Gauss-Markov state it keeps the reported accuracy honest. GPS1 readings do not share it.
 
 Fixes are stamped with their frame's capture time and may arrive late: the filter keeps a short history of its
 states and IMU inputs, rolls back to the capture time, applies the fix and replays the inputs since. Each fix is
@@ -25,8 +30,11 @@ from auxgps.core.localise import PositionPrior
 log = logging.getLogger(__name__)
 
 GRAVITY_NED_M_S2 = np.array([0.0, 0.0, 9.80665])
-_H_NE = np.hstack([np.eye(2), np.zeros((2, 7))])
-_H_D = np.zeros((1, 9))
+_N = 11
+_H_NE = np.hstack([np.eye(2), np.zeros((2, _N - 2))])
+_H_NE_VISUAL = _H_NE.copy()
+_H_NE_VISUAL[:, 9:11] = np.eye(2)
+_H_D = np.zeros((1, _N))
 _H_D[0, 2] = 1.0
 
 
@@ -78,9 +86,9 @@ class NavFilter:
 
     def __init__(self, cfg, t_s: float, p_ned_m: np.ndarray, v_ned_m_s: np.ndarray, sigma_p_m: float, sigma_v_m_s: float) -> None:
         self.cfg = cfg
-        self._ekf = ExtendedKalmanFilter(dim_x=9, dim_z=2)
-        self._ekf.x = np.concatenate([p_ned_m, v_ned_m_s, np.zeros(3)]).reshape(9, 1).astype(float)
-        self._ekf.P = np.diag([sigma_p_m**2] * 3 + [sigma_v_m_s**2] * 3 + [cfg.accel_bias_sigma_m_s2**2] * 3)
+        self._ekf = ExtendedKalmanFilter(dim_x=_N, dim_z=2)
+        self._ekf.x = np.concatenate([p_ned_m, v_ned_m_s, np.zeros(5)]).reshape(_N, 1).astype(float)
+        self._ekf.P = np.diag([sigma_p_m**2] * 3 + [sigma_v_m_s**2] * 3 + [cfg.accel_bias_sigma_m_s2**2] * 3 + [cfg.fix_bias_sigma_m**2] * 2)
         self.t_s = float(t_s)
         self._history: deque = deque()  # (t_s, x, P, imu) after each propagation
         self._rejected_run: list[tuple[float, np.ndarray, np.ndarray]] = []
@@ -106,8 +114,9 @@ class NavFilter:
             self._history.popleft()
         return True
 
-    def update_position(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray) -> GateDecision:
-        """Fuse a horizontal position fix captured at ``t_s`` (up to ``history_s`` ago)."""
+    def update_position(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray, visual: bool = False) -> GateDecision:
+        """Fuse a horizontal position fix captured at ``t_s`` (up to ``history_s`` ago). A ``visual`` fix carries
+        the error all visual fixes share (see the module's docstring); a GPS reading does not."""
         p_ne_m = np.asarray(p_ne_m, float).reshape(2)
         cov_ne_m2 = np.asarray(cov_ne_m2, float).reshape(2, 2)
         if not (np.all(np.isfinite(p_ne_m)) and np.all(np.isfinite(cov_ne_m2))):
@@ -115,11 +124,12 @@ class NavFilter:
         replay = self._rewind(t_s)
         if replay is None:
             return self._decide(GateDecision(t_s, False, np.nan, f"fix {self.t_s - t_s:.3f} s old, older than the history"))
-        S = _H_NE @ self._ekf.P @ _H_NE.T + cov_ne_m2
-        y = p_ne_m - self._ekf.x[:2, 0]
+        H = _H_NE_VISUAL if visual else _H_NE
+        S = H @ self._ekf.P @ H.T + cov_ne_m2
+        y = p_ne_m - (H @ self._ekf.x)[:, 0]
         m2 = float(y @ np.linalg.solve(S, y))
         if m2 <= self.cfg.gate_chi2:
-            self._ekf.update(p_ne_m.reshape(2, 1), lambda x: _H_NE, lambda x: x[:2], R=cov_ne_m2)
+            self._ekf.update(p_ne_m.reshape(2, 1), lambda x: H, lambda x: H @ x, R=cov_ne_m2)
             self._rejected_run.clear()
             decision = GateDecision(t_s, True, m2, "accepted")
         else:
@@ -193,18 +203,21 @@ class NavFilter:
         cfg = self.cfg
         R = imu.R_ned_body
         I3 = np.eye(3)
-        F = np.eye(9)
+        F = np.eye(_N)
         F[0:3, 3:6] = I3 * dt
         F[0:3, 6:9] = -0.5 * R * dt * dt
         F[3:6, 6:9] = -R * dt
-        B = np.vstack([0.5 * I3 * dt * dt, I3 * dt, np.zeros((3, 3))])
+        B = np.vstack([0.5 * I3 * dt * dt, I3 * dt, np.zeros((5, 3))])
+        decay = np.exp(-dt / cfg.fix_bias_tau_s)
+        F[9:11, 9:11] = np.eye(2) * decay
         u = (R @ imu.f_body_m_s2 + GRAVITY_NED_M_S2).reshape(3, 1)
         q = cfg.accel_noise_m_s2_sqrt_hz**2  # white acceleration noise, continuous-time
-        Q = np.zeros((9, 9))
+        Q = np.zeros((_N, _N))
         Q[0:3, 0:3] = I3 * q * dt**3 / 3.0
         Q[0:3, 3:6] = Q[3:6, 0:3] = I3 * q * dt**2 / 2.0
         Q[3:6, 3:6] = I3 * q * dt
         Q[6:9, 6:9] = I3 * cfg.accel_bias_walk_m_s2_sqrt_s**2 * dt
+        Q[9:11, 9:11] = np.eye(2) * cfg.fix_bias_sigma_m**2 * (1.0 - decay**2)
         self._ekf.F, self._ekf.B, self._ekf.Q = F, B, Q
         self._ekf.predict(u)
         self.t_s = imu.t_s
@@ -249,9 +262,12 @@ class NavFilter:
     def _reinitialise(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray) -> None:
         x, P = self._ekf.x, self._ekf.P
         x[0:2, 0] = p_ne_m
-        P[0:2, :] = 0.0
-        P[:, 0:2] = 0.0
+        x[9:11, 0] = 0.0
+        for block in (slice(0, 2), slice(9, 11)):
+            P[block, :] = 0.0
+            P[:, block] = 0.0
         P[0:2, 0:2] = cov_ne_m2
+        P[9:11, 9:11] = np.eye(2) * self.cfg.fix_bias_sigma_m**2
         P[3:5, 3:5] += np.eye(2) * self.cfg.reinit_speed_sigma_m_s**2
         self._rejected_run.clear()
         self.n_reinit += 1

@@ -358,7 +358,7 @@ def _replay_positioning(script: _PositioningScript, maps: list[LandmarkMap], pip
             while run.pending and run.pending[0][0] <= t:
                 _, fix, k = run.pending.pop(0)
                 t0 = time.perf_counter()
-                decision = nav.update_position(fix.t_s, fix.p_ned_m[:2], fix.cov_ned_m2[:2, :2])
+                decision = nav.update_position(fix.t_s, fix.p_ned_m[:2], fix.cov_ned_m2[:2, :2], visual=True)
                 rec.rows[k]["filtering"] = (time.perf_counter() - t0) * 1e3
                 if decision.accepted:
                     processing_ms = sum(rec.rows[k].values())

@@ -161,7 +161,7 @@ def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: Pipeli
             nav.update_position(t, gps, np.eye(2) * pipeline.noise.gps_horizontal_m**2)
         while pending and pending[0][0] <= t:
             _, fix, k = pending.pop(0)
-            decision = nav.update_position(fix.t_s, fix.p_ned_m[:2], fix.cov_ned_m2[:2, :2])
+            decision = nav.update_position(fix.t_s, fix.p_ned_m[:2], fix.cov_ned_m2[:2, :2], visual=True)
             fix_gated[k] = not decision.accepted
         if i % frame_every == 0 and denied:
             tel = sense(traj, i, noise, su.rng_tel, gps_ok=False)
