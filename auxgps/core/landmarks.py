@@ -32,9 +32,9 @@ def unpack_sym(v: np.ndarray) -> np.ndarray:
 class LandmarkMap:
     """A growable column store of landmarks. Ids are row indices and never change."""
 
-    def __init__(self, capacity: int = 1024) -> None:
+    def __init__(self, capacity: int = 1024, descriptor_bytes: int = DESCRIPTOR_BYTES) -> None:
         self._n = 0
-        self.descriptors = np.zeros((capacity, DESCRIPTOR_BYTES), np.uint8)
+        self.descriptors = np.zeros((capacity, descriptor_bytes), np.uint8)
         self.p_ned_m = np.zeros((capacity, 3), np.float32)
         self.info_packed = np.zeros((capacity, 6), np.float32)
         self.n_seen = np.zeros(capacity, np.uint16)
