@@ -181,7 +181,9 @@ class PhotoMapConfig:
     pixel_sigma_px: Positive = 1.0  # a feature's position noise, full-resolution px (scaled up for large blobs)
     gps_sigma_h_m: Positive = 1.0  # a consumer receiver's horizontal error, per axis
     gps_sigma_floor_m: Positive = 0.5  # the receivers' noise is taken as at least this, however well they agree
-    gps_bias_sigma_m: NonNegative = 0.3  # an offset common to the whole survey, which averaging cannot remove
+    # An offset common to a whole pass, which averaging photos cannot remove: at Brighton Beach the middle pass's GPS
+    # sits about 1 m from where the outer passes' GPS puts the same ground (bundle adjustment of all 18 photos).
+    gps_bias_sigma_m: NonNegative = 0.5
     height_sigma_m: Positive = 0.5  # height above take-off (DJI RelativeAltitude)
     refine_intrinsics: bool = True  # focal length and two radial distortion terms per camera
     max_ba_points: Annotated[int, Field(ge=50)] = 4000

@@ -852,16 +852,17 @@ class PhotoLocator:
         R = R_cam_ned.T
         C = -R @ tvec.ravel()
         sigma_px = cfg.pixel_sigma_px * scale
-        # Map points are uncertain too: their spread, seen from this camera, adds to the pixel noise.
+        inl = inl.ravel()
+        # Refine on the inliers, re-select them with the refined pose and the map points' own uncertainty (seen
+        # from this camera it adds to the pixel noise), and again.
         for _ in range(3):
             depth = np.maximum((X - C) @ R[:, 2], 1e-3)
             sig = np.sqrt(sigma_px**2 + camera.focal_px**2 * self._point_var_m2[lm] / depth**2)
-            R, C, err = _refine_pose(camera, X, uv, sig, R, C)
+            R, C, _ = _refine_pose(camera, X[inl], uv[inl], sig[inl], R, C)
+            err = _reproject(camera, X, uv, R, C)
             inl = np.flatnonzero(err <= 3.0 * sig)
             if len(inl) < cfg.min_inliers:
                 return PhotoNoFix(f"{len(inl)} of {n_matches} matches agree on a pose (need {cfg.min_inliers})", len(inl), n_matches)
-            R, C, err_in = _refine_pose(camera, X[inl], uv[inl], sig[inl], R, C)
-            err = _reproject(camera, X, uv, R, C)
         inl = np.flatnonzero(err <= 3.0 * sig)
         n_inl = len(inl)
         share = n_inl / n_matches
