@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 
 from auxgps.cli import main
-from auxgps.config import PhotoCameraConfig, load_photo_camera, load_photo_config
+from auxgps.config import load_photo_camera
 from auxgps.core.photo_map import R_ned_cam_from_gimbal, R_ned_cam_nadir, camera_heading_rad
 from auxgps.errors import MapError, PhotoError
 from auxgps.io.map_file import load_map, load_photo_map

@@ -25,12 +25,12 @@ maps camera into NED. Pixels are full-resolution pixels of the stored photo.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix, lil_matrix
+from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial.transform import Rotation
 
@@ -482,8 +482,8 @@ def _bundle_adjust(model, cam0, intr0, X0, photo, pt_idx, uv_obs, sigma_px, prio
     """Levenberg-Marquardt bundle adjustment with the points eliminated (Schur complement) and Huber weights.
 
     ``priors`` = (gps_idx, gps_ne (G, 2), gps_sigma, h_idx, h_val, h_sigma): each photo's GPS position and
-    height above the origin as soft constraints. Returns photo parameters (n, 6), intrinsics (c, 3), points
-    (m, 3) and the covariance of the photo parameters (6n + 3c, 6n + 3c) (from the reduced system).
+    height above the origin as soft constraints. Returns photo parameters (n, 6), intrinsics (c, 3) and
+    points (m, 3).
     """
     n, c, m = len(cam0), len(intr0), len(X0)
     gps_idx, gps_ne, gps_sigma, h_idx, h_val, h_sigma = priors
@@ -522,7 +522,6 @@ def _bundle_adjust(model, cam0, intr0, X0, photo, pt_idx, uv_obs, sigma_px, prio
     cam, intr, X = cam0.copy(), intr0.copy(), X0.copy()
     lam = 1e-3
     cost = total_cost(cam, intr, X)
-    S_inv = None
     for _ in range(max_iterations):
         uv, Jc, Jx = _obs_jacobians(model, cam, intr, X, photo, pt_idx)
         r = uv - uv_obs
@@ -569,6 +568,9 @@ def _bundle_adjust(model, cam0, intr0, X0, photo, pt_idx, uv_obs, sigma_px, prio
                 dc = np.linalg.solve(S, rhs)
             except np.linalg.LinAlgError:
                 lam *= 10.0
+                if lam > 1e8:
+                    converged = True
+                    break
                 continue
             # Back-substitute the points: V dx = -gx - W^T dc.
             wt_dc = np.zeros((m, 3))
@@ -587,7 +589,6 @@ def _bundle_adjust(model, cam0, intr0, X0, photo, pt_idx, uv_obs, sigma_px, prio
                 converged = (cost - new_cost) < 1e-6 * cost
                 cam, intr, X, cost = cam_new, intr_new, X_new, new_cost
                 lam = max(lam / 10.0, 1e-7)
-                S_inv = None
                 break
             lam *= 10.0
             if lam > 1e8:
@@ -801,7 +802,8 @@ def build_photo_map(photos: list[MapPhoto], cfg, rng: np.random.Generator | None
 
 
 def _obs_scale(photos, tracks) -> np.ndarray:
-    """Per observation: how many stored pixels one pixel of the image the feature was found in spans."""
+    """Per observation: how much worse than the finest features it is located (SIFT places a blob to about an
+    eighth of its diameter, so a large blob's position is less certain)."""
     return np.array([photos[p].features.size_px[k] for p, k in zip(tracks.photo, tracks.kp)]) / 8.0
 
 
