@@ -11,6 +11,7 @@ import signal
 import sys
 from pathlib import Path
 
+import numpy as np
 from tabulate import tabulate
 
 from auxgps.config import load_pipeline_config
@@ -185,6 +186,72 @@ def _load_baseline(pipeline):
     return module.make_baseline(camera_from_config(pipeline.camera))
 
 
+def _photo_settings(args):
+    from auxgps.config import load_photo_camera, load_photo_config
+
+    cfg = load_photo_config(args.config)
+    if args.max_side is not None:
+        from dataclasses import replace
+
+        cfg = replace(cfg, max_side_px=args.max_side)
+    return (load_photo_camera(args.camera) if args.camera else None), cfg
+
+
+def _map_build(args) -> int:
+    from auxgps.io.map_file import save_photo_map
+    from auxgps.io.photos import list_photos
+    from auxgps.photo_workflow import build_map_from_photos
+
+    cam_cfg, cfg = _photo_settings(args)
+    files = list_photos(args.images, args.only)
+    print(f"auxgps map build: {len(files)} photos from {args.images}")
+    report = build_map_from_photos(files, cam_cfg, cfg, progress=None if args.quiet else lambda name: print(f"  features: {name}", flush=True))
+    for msg in report.messages:
+        print(f"  note: {msg}")
+    pm = report.photo_map
+    save_photo_map(args.out, pm, report.frame)
+    res = [p.gps_residual_ne_m for p in pm.photos if p.gps_residual_ne_m is not None]
+    rms = float(np.sqrt(np.mean(np.sum(np.square(res), axis=1)))) if res else float("nan")
+    print(f"map: {len(pm)} points from {len(pm.photos)} photos; photo positions vs their GPS: RMS {rms:.2f} m; "
+          f"map placement one sigma {pm.georef_sigma_h_m:.2f} m")
+    for cid, cam in pm.cameras.items():
+        print(f"camera {cid}: focal {cam.focal_px:.1f} px, k1 {cam.dist[0]:+.4f}, k2 {cam.dist[1]:+.4f}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _locate(args) -> int:
+    from auxgps.io.map_file import load_photo_map
+    from auxgps.io.photos import list_photos
+    from auxgps.photo_workflow import locate_photos
+
+    cam_cfg, cfg = _photo_settings(args)
+    photo_map, frame = load_photo_map(args.map)
+    files = list_photos(args.images, args.only)
+
+    def show(row):
+        if row["located"]:
+            err = "-" if row["error_m"] is None else f"{row['error_m']:.2f} m"
+            line = (f"{row['file']}: {row['lat_deg']:.7f} {row['lon_deg']:.7f}  accuracy {row['accuracy_m']:.2f} m  "
+                    f"inliers {row['inliers']}  distance to its GPS {err}")
+        else:
+            line = f"{row['file']}: {row['message']}"
+        for note in row["notes"]:
+            line += f"  [{note}]"
+        print(line, flush=True)
+
+    result = locate_photos(files, photo_map, frame, cam_cfg, cfg, use_metadata=not args.ignore_metadata, progress=show)
+    sm = result["summary"]
+    med = "-" if sm["median_error_m"] is None else f"{sm['median_error_m']:.2f} m"
+    mx = "-" if sm["max_error_m"] is None else f"{sm['max_error_m']:.2f} m"
+    print(f"located {sm['located']} of {sm['total']}; distance to their own GPS: median {med}, max {mx}")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(result, indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
 def _positive(kind):
     def parse(text):
         value = kind(text)
@@ -243,6 +310,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-baseline", action="store_true", help="do not run the thesis' method beside")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=_bench)
+
+    def add_photo_options(p):
+        p.add_argument("--images", required=True, help="folder of photos (JPEG, PNG, TIFF)")
+        p.add_argument("--only", action="append", help="only photos whose file name matches this glob (repeatable, or comma-separated)")
+        p.add_argument("--camera", help="camera file (config/cameras/*.yaml); default: from EXIF, refined by map building")
+        p.add_argument("--config", help="photo workflow settings YAML (default: built-in defaults)")
+        p.add_argument("--max-side", type=int, help="reduce photos to this longer side, px, for features (0: full resolution)")
+        p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+    p = sub.add_parser("map", help="landmark maps from photos")
+    map_sub = p.add_subparsers(dest="map_command", required=True)
+    p = map_sub.add_parser("build", help="build a landmark map from a folder of geotagged photos")
+    add_photo_options(p)
+    p.add_argument("--out", required=True, help="map file to write (.npz)")
+    p.set_defaults(func=_map_build)
+
+    p = sub.add_parser("locate", help="locate photos from a map alone; their own GPS only scores the answer")
+    p.add_argument("--map", required=True, help="map file from auxgps map build")
+    add_photo_options(p)
+    p.add_argument("--json", help="write per-photo results and a summary as JSON to this file")
+    p.add_argument("--ignore-metadata", action="store_true", help="use no attitude or height metadata of the photos")
+    p.set_defaults(func=_locate)
 
     p = sub.add_parser("demo", help="closed loop: the vehicle emulator and auxgps run, GPS1 failing mid-survey")
     p.add_argument("--out-dir", default="out/demo", help="logs, report.png and report.json go here")

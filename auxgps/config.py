@@ -149,6 +149,83 @@ class PipelineConfig:
     fusion: FusionConfig = Field(default_factory=FusionConfig)
 
 
+@dataclass(config=_STRICT, frozen=True)
+class PhotoCameraConfig:
+    """A photo camera's intrinsics, for photos of ``width_px`` x ``height_px`` (or any size, when absent).
+
+    Either ``K`` (3x3, full-resolution px), or the focal length and the sensor width (mm): the focal length in
+    pixels is ``focal_mm / sensor_width_mm * width``; without ``focal_mm`` the photo's EXIF focal length is used.
+    The principal point is the image centre. ``dist``: OpenCV distortion coefficients. Map building refines the
+    focal length and two radial terms and stores them in the map.
+    """
+
+    focal_mm: Positive | None = None
+    sensor_width_mm: Positive | None = None
+    width_px: Annotated[int, Field(gt=0, le=100000)] | None = None
+    height_px: Annotated[int, Field(gt=0, le=100000)] | None = None
+    K: list[list[float]] | None = None
+    dist: list[float] = Field(default_factory=list)
+    description: str = ""
+
+    @model_validator(mode="after")
+    def _check(self) -> "PhotoCameraConfig":
+        if self.K is not None and (len(self.K) != 3 or any(len(row) != 3 for row in self.K)):
+            raise ValueError("K must be a 3x3 matrix")
+        if self.K is None and self.sensor_width_mm is None:
+            raise ValueError("give K, or sensor_width_mm (with focal_mm, or the photos' EXIF focal length)")
+        if len(self.dist) not in (0, 4, 5, 8, 12, 14):
+            raise ValueError("dist must hold 0, 4, 5, 8, 12 or 14 OpenCV coefficients")
+        return self
+
+
+@dataclass(config=_STRICT, frozen=True)
+class PhotoMapConfig:
+    """Building a landmark map from geotagged photos."""
+
+    ratio: Annotated[float, Field(gt=0, le=1)] = 0.8  # Lowe's ratio test
+    min_pair_inliers: Annotated[int, Field(ge=8)] = 40
+    pair_ransac_px: Positive = 4.0  # fundamental-matrix inlier distance, full-resolution px
+    pixel_sigma_px: Positive = 1.0  # a feature's position noise, full-resolution px (scaled up for large blobs)
+    gps_sigma_h_m: Positive = 1.0  # a consumer receiver's horizontal error, per axis
+    gps_sigma_floor_m: Positive = 0.5  # the receivers' noise is taken as at least this, however well they agree
+    # An offset common to a whole pass, which averaging photos cannot remove: at Brighton Beach the middle pass's GPS
+    # sits about 1 m from where the outer passes' GPS puts the same ground (bundle adjustment of all 18 photos).
+    gps_bias_sigma_m: NonNegative = 0.5
+    height_sigma_m: Positive = 0.5  # height above take-off (DJI RelativeAltitude)
+    refine_intrinsics: bool = True  # focal length and two radial distortion terms per camera
+    max_ba_points: Annotated[int, Field(ge=50)] = 4000
+    max_ba_evaluations: Annotated[int, Field(ge=5)] = 100
+    init_outlier_sigma: Positive = 20.0  # tracks worse than this with the first-guess poses are left out
+    max_point_sigma_m: Positive = 0.5  # a point placed worse than this (horizontal, one sigma) is not kept
+    max_heading_disagreement_deg: Positive = 20.0  # metadata further off than this is reported
+
+
+@dataclass(config=_STRICT, frozen=True)
+class PhotoLocateConfig:
+    """Locating a photo against a photo map."""
+
+    ratio: Annotated[float, Field(gt=0, le=1)] = 0.8
+    min_inliers: Annotated[int, Field(ge=6)] = 30
+    min_inlier_share: Probability = 0.1  # of the descriptor matches
+    min_inlier_spread: Probability = 0.02  # share of the photo's area the inliers' bounding box covers
+    ransac_px: Positive = 3.0  # PnP inlier distance for the smallest features, full-resolution px
+    ransac_iterations: Annotated[int, Field(ge=100)] = 5000
+    pixel_sigma_px: Positive = 1.0
+    max_accuracy_m: Positive = 5.0  # a fix less certain than this (one sigma) is no fix
+    max_outside_map_m: NonNegative = 50.0
+    max_heading_disagreement_deg: Positive = 20.0
+
+
+@dataclass(config=_STRICT, frozen=True)
+class PhotoConfig:
+    """The photo workflow (``auxgps map build`` and ``auxgps locate``)."""
+
+    max_side_px: Annotated[int, Field(ge=0, le=100000)] = 1200  # photos are reduced to this (0: full resolution)
+    n_features: Annotated[int, Field(ge=100, le=200000)] = 20000
+    map: PhotoMapConfig = Field(default_factory=PhotoMapConfig)
+    locate: PhotoLocateConfig = Field(default_factory=PhotoLocateConfig)
+
+
 T = TypeVar("T")
 
 
@@ -189,3 +266,15 @@ def load_pipeline_config(path: Path | str | None = None) -> PipelineConfig:
     if path is None:
         return PipelineConfig()
     return parse_as(PipelineConfig, read_yaml(path), path)
+
+
+def load_photo_config(path: Path | str | None = None) -> PhotoConfig:
+    """Load the photo workflow's settings from YAML, or the defaults when ``path`` is None."""
+    if path is None:
+        return PhotoConfig()
+    return parse_as(PhotoConfig, read_yaml(path), path)
+
+
+def load_photo_camera(path: Path | str) -> PhotoCameraConfig:
+    """Load a photo camera file (``config/cameras/*.yaml``)."""
+    return parse_as(PhotoCameraConfig, read_yaml(path), path)

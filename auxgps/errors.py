@@ -22,3 +22,11 @@ class FrameError(AuxGpsError):
 
 class MapError(AuxGpsError):
     """A landmark map file is missing, truncated, or of an unknown version."""
+
+
+class PhotoError(AuxGpsError):
+    """A photo or photo folder cannot be used (missing, not an image, truncated, no usable metadata)."""
+
+
+class PhotoMapError(AuxGpsError):
+    """A landmark map cannot be built from the photos given (too few geotagged, overlapping photos)."""

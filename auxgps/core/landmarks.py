@@ -156,10 +156,10 @@ class LandmarkMap:
     #: Capacity grows by this factor when full: room for amortised appends at a bounded memory slack.
     GROWTH = 1.5
 
-    def __init__(self, capacity: int = 1024, index: GridIndex | None = None) -> None:
+    def __init__(self, capacity: int = 1024, index: GridIndex | None = None, descriptor_bytes: int = DESCRIPTOR_BYTES) -> None:
         self._n = 0
         self.index = index if index is not None else GridIndex()
-        self.descriptors = np.zeros((capacity, DESCRIPTOR_BYTES), np.uint8)
+        self.descriptors = np.zeros((capacity, descriptor_bytes), np.uint8)
         self.p_ned_m = np.zeros((capacity, 3), np.float32)
         self.info_packed = np.zeros((capacity, 6), np.float32)
         self.n_seen = np.zeros(capacity, np.uint16)

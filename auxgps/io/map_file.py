@@ -1,24 +1,29 @@
 """Landmark map files: a versioned, documented format, written atomically.
 
-Format (version 1): a NumPy ``.npz`` archive (uncompressed) holding
+Format (version 2): a NumPy ``.npz`` archive (uncompressed) holding
 
 ======================  =================  ===============================================================
 array                   shape, dtype       meaning
 ======================  =================  ===============================================================
-``meta``                (), str (JSON)     ``{"format": "auxgps-map", "version": 1, "origin": {lat_deg,
-                                           lon_deg, alt_amsl_m}, "count": N}``
-``descriptors``         (N, 32) uint8      ORB descriptors
+``meta``                (), str (JSON)     ``{"format": "auxgps-map", "version": 2, "origin": {lat_deg,
+                                           lon_deg, alt_amsl_m}, "count": N, "descriptor": "orb" | "sift"}``;
+                                           a map built from photos adds ``cameras`` (camera id ->
+                                           ``{width_px, height_px, K, dist}``, refined intrinsics),
+                                           ``georef_sigma_h_m`` (one-sigma error of the whole map's
+                                           placement, m) and ``photos`` (``[{name, p_ned_m, R_ned_cam}]``)
+``descriptors``         (N, D) uint8       ORB (D = 32) or SIFT (D = 128) descriptors
 ``p_ned_m``             (N, 3) float32     positions in the local NED frame of ``origin``, m
 ``info_packed``         (N, 6) float32     information matrix (inverse covariance), upper triangle
                                            xx xy xz yy yz zz, 1/m^2
-``n_seen``              (N,) uint16        observations fused
+``n_seen``              (N,) uint16        observations fused (photos: views of the point)
 ``n_visible``           (N,) uint16        frames that should have seen it
 ``view_cos``            (N,) float16       down-component of the view ray that gave the descriptor
 ``chi2_mean``           (N,) float16       mean squared Mahalanobis innovation of its observations
 ======================  =================  ===============================================================
 
-A file is written to a temporary name in the same folder, flushed to disk and renamed over the target, so a
-crash leaves either the old map or the new one, never half of one.
+Version 1 is version 2 without ``descriptor`` (always ORB) and is still read. A file is written to a temporary
+name in the same folder, flushed to disk and renamed over the target, so a crash leaves either the old map or
+the new one, never half of one.
 """
 
 from __future__ import annotations
@@ -31,14 +36,18 @@ from pathlib import Path
 
 import numpy as np
 
+from auxgps.core.camera import PinholeCamera
 from auxgps.core.geometry import LocalFrame
-from auxgps.core.landmarks import LandmarkMap
+from auxgps.core.landmarks import LandmarkMap, pack_sym, unpack_sym
+from auxgps.core.photo_map import PhotoMap, SolvedPhoto
 from auxgps.errors import MapError
 
 FORMAT = "auxgps-map"
-VERSION = 1
+VERSION = 2
+READABLE_VERSIONS = (1, 2)
+DESCRIPTOR_BYTES = {"orb": 32, "sift": 128}
 _COLUMNS = {
-    "descriptors": (np.uint8, (32,)),
+    "descriptors": (np.uint8, None),  # width set by the descriptor kind
     "p_ned_m": (np.float32, (3,)),
     "info_packed": (np.float32, (6,)),
     "n_seen": (np.uint16, ()),
@@ -48,17 +57,7 @@ _COLUMNS = {
 }
 
 
-def save_map(path: Path | str, landmarks: LandmarkMap, frame: LocalFrame) -> None:
-    """Write ``landmarks`` (anchored at ``frame``) to ``path`` atomically."""
-    path = Path(path)
-    n = len(landmarks)
-    meta = {
-        "format": FORMAT,
-        "version": VERSION,
-        "origin": {"lat_deg": frame.lat_deg, "lon_deg": frame.lon_deg, "alt_amsl_m": frame.alt_amsl_m},
-        "count": n,
-    }
-    arrays = {name: getattr(landmarks, name)[:n] for name in _COLUMNS}
+def _write(path: Path, meta: dict, arrays: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
@@ -72,21 +71,37 @@ def save_map(path: Path | str, landmarks: LandmarkMap, frame: LocalFrame) -> Non
         raise
 
 
-def load_map(path: Path | str) -> tuple[LandmarkMap, LocalFrame]:
-    """Read a map file. Any problem (missing, truncated, wrong version, bad arrays) is one :class:`MapError`."""
-    path = Path(path)
+def _origin(frame: LocalFrame) -> dict:
+    return {"lat_deg": frame.lat_deg, "lon_deg": frame.lon_deg, "alt_amsl_m": frame.alt_amsl_m}
+
+
+def save_map(path: Path | str, landmarks: LandmarkMap, frame: LocalFrame) -> None:
+    """Write a flight map (ORB ``landmarks``, anchored at ``frame``) to ``path`` atomically."""
+    n = len(landmarks)
+    kind = "sift" if landmarks.descriptors.shape[1] == DESCRIPTOR_BYTES["sift"] else "orb"
+    meta = {"format": FORMAT, "version": VERSION, "origin": _origin(frame), "count": n, "descriptor": kind}
+    _write(Path(path), meta, {name: getattr(landmarks, name)[:n] for name in _COLUMNS})
+
+
+def _read(path: Path) -> tuple[dict, dict, LocalFrame]:
+    """Meta, columns and frame of a map file; every problem is one :class:`MapError`."""
     try:
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
-            if meta.get("format") != FORMAT:
-                raise MapError(f"{path}: not an auxgps map (format {meta.get('format')!r})")
-            if meta.get("version") != VERSION:
-                raise MapError(f"{path}: map version {meta.get('version')} is not supported (this auxgps reads {VERSION})")
+            if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+                raise MapError(f"{path}: not an auxgps map (format {meta.get('format') if isinstance(meta, dict) else None!r})")
+            if meta.get("version") not in READABLE_VERSIONS:
+                raise MapError(f"{path}: map version {meta.get('version')} is not supported (this auxgps reads "
+                               f"{', '.join(map(str, READABLE_VERSIONS))})")
+            kind = meta.get("descriptor", "orb")
+            if kind not in DESCRIPTOR_BYTES:
+                raise MapError(f"{path}: unknown descriptor kind {kind!r}")
             n = int(meta["count"])
             o = meta["origin"]
             frame = LocalFrame(float(o["lat_deg"]), float(o["lon_deg"]), float(o["alt_amsl_m"]))
             columns = {}
             for name, (dtype, tail) in _COLUMNS.items():
+                tail = (DESCRIPTOR_BYTES[kind],) if tail is None else tail
                 a = data[name]
                 if a.dtype != dtype or a.shape != (n, *tail):
                     raise MapError(f"{path}: array {name} has shape {a.shape} and type {a.dtype}, expected {(n, *tail)} {np.dtype(dtype)}")
@@ -95,13 +110,86 @@ def load_map(path: Path | str) -> tuple[LandmarkMap, LocalFrame]:
         raise
     except FileNotFoundError:
         raise MapError(f"{path}: no such map file") from None
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, EOFError) as err:
+    except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile, json.JSONDecodeError, EOFError) as err:
         raise MapError(f"{path}: unreadable or truncated map file ({type(err).__name__}: {err})") from None
+    if not np.all(np.isfinite(columns["p_ned_m"])) or not np.all(np.isfinite(columns["info_packed"])):
+        raise MapError(f"{path}: map holds non-finite positions or information")
+    meta["descriptor"] = kind
+    return meta, columns, frame
+
+
+def load_map(path: Path | str) -> tuple[LandmarkMap, LocalFrame]:
+    """Read a flight map (ORB descriptors). A photo map, or any problem with the file, is one :class:`MapError`."""
+    path = Path(path)
+    meta, columns, frame = _read(path)
+    if meta["descriptor"] != "orb":
+        raise MapError(f"{path}: a map of {meta['descriptor']} features (built from photos, for auxgps locate); "
+                       "the flight pipeline needs a map it built itself (orb)")
+    n = int(meta["count"])
     lm = LandmarkMap(capacity=max(n, 16))
     for name, a in columns.items():
         getattr(lm, name)[:n] = a
     lm._n = n
-    if not np.all(np.isfinite(lm.p_ned_m[:n])) or not np.all(np.isfinite(lm.info_packed[:n])):
-        raise MapError(f"{path}: map holds non-finite positions or information")
     lm.sync_index()  # built here, so that the first frame after loading is not the one that pays for it
     return lm, frame
+
+
+def save_photo_map(path: Path | str, photo_map: PhotoMap, frame: LocalFrame) -> None:
+    """Write a map built from photos (SIFT descriptors, refined cameras, solved photos) atomically."""
+    n = len(photo_map)
+    meta = {
+        "format": FORMAT,
+        "version": VERSION,
+        "origin": _origin(frame),
+        "count": n,
+        "descriptor": "sift",
+        "cameras": {
+            cid: {"width_px": c.width_px, "height_px": c.height_px, "K": c.K.tolist(), "dist": c.dist.tolist()}
+            for cid, c in photo_map.cameras.items()
+        },
+        "georef_sigma_h_m": photo_map.georef_sigma_h_m,
+        "photos": [{"name": p.name, "p_ned_m": p.p_cam_in_ned_m.tolist(), "R_ned_cam": p.R_ned_cam.tolist()} for p in photo_map.photos],
+    }
+    arrays = {
+        "descriptors": photo_map.descriptors.astype(np.uint8),
+        "p_ned_m": photo_map.p_ned_m.astype(np.float32),
+        "info_packed": pack_sym(photo_map.info_ned).astype(np.float32),
+        "n_seen": np.minimum(photo_map.n_views, np.iinfo(np.uint16).max).astype(np.uint16),
+        "n_visible": np.minimum(photo_map.n_views, np.iinfo(np.uint16).max).astype(np.uint16),
+        "view_cos": np.ones(n, np.float16),
+        "chi2_mean": np.zeros(n, np.float16),
+    }
+    _write(Path(path), meta, arrays)
+
+
+def load_photo_map(path: Path | str) -> tuple[PhotoMap, LocalFrame]:
+    """Read a map built from photos. A flight map, or any problem with the file, is one :class:`MapError`."""
+    path = Path(path)
+    meta, columns, frame = _read(path)
+    if meta["descriptor"] != "sift" or "cameras" not in meta:
+        raise MapError(f"{path}: a flight map ({meta['descriptor']} features), not one built from photos "
+                       "(auxgps map build --images DIR)")
+    try:
+        cameras = {
+            cid: PinholeCamera(int(c["width_px"]), int(c["height_px"]), np.array(c["K"], float), np.array(c["dist"], float))
+            for cid, c in meta["cameras"].items()
+        }
+        photos = tuple(
+            SolvedPhoto(str(p["name"]), np.array(p["p_ned_m"], float), np.array(p["R_ned_cam"], float), 0, None, None)
+            for p in meta.get("photos", [])
+        )
+        georef = float(meta["georef_sigma_h_m"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise MapError(f"{path}: bad photo-map metadata ({type(err).__name__}: {err})") from None
+    except Exception as err:  # CameraError from a bad K
+        raise MapError(f"{path}: bad camera in the map ({err})") from None
+    pm = PhotoMap(
+        p_ned_m=columns["p_ned_m"].astype(float),
+        info_ned=unpack_sym(columns["info_packed"].astype(float)),
+        descriptors=columns["descriptors"],
+        n_views=columns["n_seen"].astype(int),
+        cameras=cameras,
+        georef_sigma_h_m=georef,
+        photos=photos,
+    )
+    return pm, frame
