@@ -213,20 +213,26 @@ class Localiser:
         cfg = self.cfg.positioning
         floor = max(2.0, cfg.rival_min_share * float(support.max()))
         readings: list[_Reading] = []
-        seed_hyps: list[np.ndarray] = []
+        lls: list[float] = []
+        seed_hyp, seed_tau = corr.hyp[seeds], corr.tau[seeds]
+        covered = np.zeros(len(seeds), bool)  # a hypothesis of a reading already taken
         for s in np.argsort(-support, kind="stable"):
             if support[s] < floor or len(readings) >= cfg.max_readings:
                 break
-            h = corr.hyp[seeds[s]]
-            if any(np.linalg.norm(h - q) <= corr.tau[seeds[s]] for q in seed_hyps):
-                continue  # a hypothesis of a reading already taken
-            seed_hyps.append(h)
+            # A reading's log-likelihood is at most its support (inliers <= support, explained share <= 1), and
+            # seeds come in falling support: once one cannot come within the margin of the best, none can.
+            if lls and support[s] < max(lls) - margin:
+                break
+            if covered[s]:
+                continue
+            covered |= np.linalg.norm(seed_hyp - seed_hyp[s], axis=1) <= seed_tau
             r = self._reading(corr, view, members[s], seeds[s])
             if int(r.inl.sum()) >= min_inliers and np.all(np.isfinite(r.p)):
                 readings.append(r)
+                lls.append(r.score - 0.5 * r.attitude_m2 - 0.5 * _prior_m2(r, prior, cfg.prior_floor_m))
         if not readings:
             return f"no hypothesis keeps {min_inliers} inliers after refinement"
-        ll = np.array([r.score - 0.5 * r.attitude_m2 - 0.5 * _prior_m2(r, prior, cfg.prior_floor_m) for r in readings])
+        ll = np.array(lls)
         order = np.argsort(-ll, kind="stable")
         best = readings[order[0]]
         radius = 2.0 * float(np.median(corr.tau))
