@@ -99,7 +99,6 @@ class Companion:
         self._rel_alt_m: float | None = None
         self._rel_alt_raw_m: float | None = None
         self._home_alt_amsl_m: float | None = None
-        self._gps1_ned: tuple[float, np.ndarray] | None = None
         self._gps1_sats: int | None = None
         self._last_correction_t: float | None = None
         self._last_disagreement: str | None = None
@@ -158,7 +157,6 @@ class Companion:
         if not self.supervisor.gps1_trusted:
             self._gps1_sats = None
             return
-        self._gps1_ned = (t_meas, p)
         self._gps1_sats = rec.satellites
         sigma = max(rec.h_acc_m, self.cfg.noise.gps_horizontal_m)
         if self.filter is None:
@@ -219,7 +217,7 @@ class Companion:
         with self._lock:
             alt = self._rel_alt_m
             prior = self.filter.prior(frame.t_s)
-            mapping = self.supervisor.gps1_trusted and self._gps1_ned is not None
+            mapping = self.supervisor.gps1_trusted
             # Where GPS1 puts the camera at the frame's time: the filter, which fuses GPS1 at its measurement
             # time with the IMU, interpolates between GPS1's 5 Hz readings and carries its lag.
             gps1 = self.filter.estimate_at(frame.t_s).p_ned_m if mapping else None

@@ -34,6 +34,7 @@ M = mavutil.mavlink
 SPEED_M_S = 1.0
 # The thesis' survey: north-south legs from east -10 m to +10 m, 2 m apart, north -10 m to +10 m.
 WAYPOINTS_NE_M = [(n, e) for k, e in enumerate(range(-10, 11, 2)) for n in ((-10, 10) if k % 2 == 0 else (10, -10))]
+GPS_DELAY_MS = 100  # auxgps run --gps-delay-ms, as GPS2_DELAY_MS in config/ardupilot/auxgps-gps2.parm
 FAIL_AFTER_WAYPOINT = 5  # GPS1 is disabled at the end of the third leg
 
 
@@ -46,6 +47,7 @@ class GroundStation:
             self.c.mav.command_long_send(1, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, mid, 1e6 / hz, 0, 0, 0, 0, 0)
         self.last = {}
         self.track: list[tuple[float, float, float]] = []  # (monotonic s, north m, east m): the truth, to score
+        self.failed_at_mono: float | None = None  # when GPS1 was disabled, monotonic s
 
     def pump(self, seconds):
         t_end = time.time() + seconds
@@ -185,12 +187,13 @@ def main(argv=None) -> int:
         time.sleep(2)
         gs = GroundStation(home)
         run = subprocess.Popen([sys.executable, "-m", "auxgps.cli", "run", "--connect", "tcp:127.0.0.1:5762",
-                                "--camera", f"sim:{args.world}", "--log-dir", str(out / "run"), "--duration", "1500"],
+                                "--camera", f"sim:{args.world}", "--log-dir", str(out / "run"), "--duration", "1500",
+                                "--gps-delay-ms", str(GPS_DELAY_MS)],
                                cwd=REPO, stdout=open(out / "run.log", "w"), stderr=subprocess.STDOUT)
         result = fly(gs)
         run.terminate()
         run.wait(timeout=20)
-        result["auxgps"] = score_logs(gs, out / "run", gs.failed_at_mono, 0.1)
+        result["auxgps"] = score_logs(gs, out / "run", gs.failed_at_mono, GPS_DELAY_MS / 1000.0)
     finally:
         for p in (run, sitl):
             if p is not None and p.poll() is None:

@@ -18,6 +18,7 @@ rejecting a run of fixes that agree with each other, the filter itself has drift
 
 from __future__ import annotations
 
+import bisect
 import logging
 from collections import deque
 from dataclasses import dataclass
@@ -164,8 +165,8 @@ class NavFilter:
         if t_s >= self.t_s or not self._history:
             t_k, x, P = self.t_s, self._ekf.x[:, 0], self._ekf.P
         else:
-            older = [h for h in self._history if h[0] <= t_s]
-            t_k, x, P = (older[-1] if older else self._history[0])[:3]
+            k = self._last_not_after(t_s)
+            t_k, x, P = self._history[0 if k is None else k][:3]
             x = x[:, 0]
         dt = t_s - t_k
         return FusedEstimate(t_s, x[:3] + x[3:6] * dt, x[3:6].copy(), P[:3, :3] + P[3:6, 3:6] * dt * dt, P[3:6, 3:6].copy())
@@ -222,14 +223,19 @@ class NavFilter:
         self._ekf.predict(u)
         self.t_s = imu.t_s
 
+    def _last_not_after(self, t_s: float) -> int | None:
+        """Index of the last history entry not later than ``t_s`` (None when the history starts after it)."""
+        k = bisect.bisect_right(self._history, t_s, key=lambda h: h[0]) - 1
+        return None if k < 0 else k
+
     def _rewind(self, t_s: float) -> list | None:
         """Restore the state at ``t_s`` (the last sample not after it); return the IMU samples to replay."""
         if t_s >= self.t_s:
             return []
         hist = self._history
-        if not hist or t_s < hist[0][0]:
+        k = self._last_not_after(t_s)
+        if k is None:
             return None
-        k = max(i for i, h in enumerate(hist) if h[0] <= t_s)
         t_k, x_k, P_k, _ = hist[k]
         replay = [h[3] for h in list(hist)[k + 1 :]]
         for _ in range(len(hist) - k - 1):
