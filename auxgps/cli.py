@@ -294,7 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gps-delay-ms", type=_delay_ms, default=100,
                    help="each GPS_INPUT describes the vehicle this long before it is sent; set the autopilot's GPS2_DELAY_MS to the same (default 100)")
     p.add_argument("--gps1-lag-ms", type=_delay_ms, default=100,
-                   help="how old a GPS1 reading is when it arrives: its receiver's lag (default 100, as ArduPilot SITL's SIM_GPS1_LAG_MS)")
+                   help="how old a GPS1 reading is when the autopilot gets it (GPS_RAW_INT's fix time): its receiver's lag (default 100, as ArduPilot SITL's SIM_GPS1_LAG_MS)")
     p.set_defaults(func=_run)
 
     p = sub.add_parser("bench", help="time the pipeline per frame on one thread, with maps up to a million landmarks, beside the thesis' method")

@@ -46,7 +46,7 @@ class RunOptions:
     duration_s: float | None = None
     gps_input_rate_hz: float = 10.0
     gps_delay_s: float = 0.1  # GPS_INPUT describes the vehicle this long ago: the autopilot's GPS2_DELAY_MS
-    gps1_lag_s: float = 0.1  # a GPS1 reading describes the vehicle this long before it arrives (SITL: SIM_GPS1_LAG_MS)
+    gps1_lag_s: float = 0.1  # a GPS1 reading describes the vehicle this long before its fix time (SITL: SIM_GPS1_LAG_MS)
 
 
 class CsvLog:
@@ -144,7 +144,7 @@ class Companion:
             self._home_alt_amsl_m = self.frame.alt_amsl_m
             log.info("local frame anchored at %.7f, %.7f, %.1f m AMSL", rec.lat_deg, rec.lon_deg, self.frame.alt_amsl_m)
         p = self.frame.to_ned(lat_deg=rec.lat_deg, lon_deg=rec.lon_deg, alt_amsl_m=rec.alt_amsl_m)
-        t_meas = rec.t_s - self.opts.gps1_lag_s  # when the receiver measured it
+        t_meas = rec.t_s - self.opts.gps1_lag_s  # when the receiver measured it (rec.t_s: the autopilot got it)
         est = self.filter.estimate_at(t_meas) if self.filter is not None else None
         self.supervisor.gps1(
             Gps1Sample(t_meas, rec.fix_type, rec.satellites, p, rec.h_acc_m),
@@ -213,14 +213,15 @@ class Companion:
             if not self._attitudes or self._rel_alt_m is None or self.filter is None:
                 return
             R = R_ned_body_from_euler(*self._attitude_at(frame.t_s))
-        feats = self.detector.detect(frame.image_bgr, R @ self.R_body_cam)
-        with self._lock:
             alt = self._rel_alt_m
             prior = self.filter.prior(frame.t_s)
             mapping = self.supervisor.gps1_trusted
             # Where GPS1 puts the camera at the frame's time: the filter, which fuses GPS1 at its measurement
             # time with the IMU, interpolates between GPS1's 5 Hz readings and carries its lag.
             gps1 = self.filter.estimate_at(frame.t_s).p_ned_m if mapping else None
+        # Mapping frames keep full resolution; positioning frames from closer than the map are shrunk to its scale.
+        scale = 1.0 if mapping else self.localiser.detection_scale(alt, prior)
+        feats = self.detector.detect(frame.image_bgr, R @ self.R_body_cam, scale)
         if mapping:
             self.mapper.process(feats, NavSample(frame.t_s, gps1, alt, R))
         res = self.localiser.locate(feats, frame.t_s, R, alt, prior)

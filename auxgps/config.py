@@ -115,6 +115,8 @@ class PositioningConfig:
     max_readings: Annotated[int, Field(ge=1)] = 6  # distinct hypotheses refined and weighed per frame
     prior_floor_m: NonNegative = 0.15  # added in quadrature to the prior's sigma when weighing readings
     footprint_margin_m: NonNegative = 2.0
+    # A frame much closer to the ground than the map's views is detected shrunk to their scale, down to this.
+    min_detection_scale: Annotated[float, Field(gt=0, le=1)] = 0.2
 
 
 @dataclass(config=_STRICT, frozen=True)

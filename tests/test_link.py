@@ -46,6 +46,18 @@ def test_attitude_gps_and_sim_state():
     assert isinstance(truth, Truth) and truth.lat_deg == pytest.approx(47.397742) and truth.alt_amsl_m == pytest.approx(503.5)
 
 
+def test_gps1_is_stamped_with_its_fix_time_when_that_is_a_boot_time():
+    clock = BootClock()
+    decode(roundtrip(M.attitude_encode(10_000, 0, 0, 0, 0, 0, 0)), clock, 100.0)  # boot 10 s is local 100 s
+    # ArduPilot sends the boot time of the last fix (here 150 ms before the attitude that went with it).
+    late = decode(roundtrip(M.gps_raw_int_encode(9_850_000, 3, 473977420, 85455940, 503000, 80, 100, 0, 0, 9)), clock, 100.01)
+    assert late.t_s == pytest.approx(99.85)
+    # UNIX time (other autopilots), zero, or a stamp far older than the message: the arrival time.
+    for time_usec in (1_795_000_000_000_000, 0, 5_000_000):
+        gps = decode(roundtrip(M.gps_raw_int_encode(time_usec, 3, 473977420, 85455940, 503000, 80, 100, 0, 0, 9)), clock, 100.02)
+        assert gps.t_s == pytest.approx(100.02)
+
+
 def test_gps_input_fields_as_ardupilot_reads_them():
     from auxgps.io.link import MavLink
 

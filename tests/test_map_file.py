@@ -1,5 +1,7 @@
 """Map files: round trip, atomic writes, and one clear error for every way a file can be bad."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -14,7 +16,8 @@ FRAME = LocalFrame(47.397742, 8.545594, 488.0)
 def some_map(n=50, seed=0):
     rng = np.random.default_rng(seed)
     lm = LandmarkMap(capacity=8)
-    lm.add(rng.integers(0, 256, (n, 32), dtype=np.uint8), rng.normal(0, 5, (n, 3)), np.repeat(np.eye(3)[None] * 100.0, n, 0), np.ones(n))
+    lm.add(rng.integers(0, 256, (n, 32), dtype=np.uint8), rng.normal(0, 5, (n, 3)), np.repeat(np.eye(3)[None] * 100.0, n, 0), np.ones(n),
+           rng.uniform(5.0, 20.0, n))
     lm.n_seen[:n] = rng.integers(1, 100, n)
     return lm
 
@@ -24,10 +27,23 @@ def test_round_trip(tmp_path):
     save_map(tmp_path / "m.npz", lm, FRAME)
     back, frame = load_map(tmp_path / "m.npz")
     assert frame == FRAME and len(back) == len(lm)
-    for name in ("descriptors", "p_ned_m", "info_packed", "n_seen", "n_visible", "view_cos", "chi2_mean"):
+    for name in LandmarkMap.COLUMNS:
         assert np.array_equal(getattr(back, name)[: len(lm)], getattr(lm, name)[: len(lm)])
     back.add(np.zeros((1, 32), np.uint8), np.zeros((1, 3)), np.eye(3)[None], np.ones(1))  # still growable
     assert len(back) == len(lm) + 1
+
+
+def test_version_2_file_is_read_with_unknown_descriptor_ranges(tmp_path):
+    lm = some_map()
+    save_map(tmp_path / "m.npz", lm, FRAME)
+    with np.load(tmp_path / "m.npz") as data:
+        arrays = {k: data[k] for k in data.files if k != "descriptor_range_m"}
+    meta = json.loads(str(arrays.pop("meta")))
+    meta["version"] = 2
+    np.savez(tmp_path / "v2.npz", meta=np.array(json.dumps(meta)), **arrays)
+    back, _ = load_map(tmp_path / "v2.npz")
+    assert np.array_equal(back.p_ned_m[: len(lm)], lm.p_ned_m[: len(lm)])
+    assert np.all(np.isnan(back.descriptor_range_m[: len(lm)]))
 
 
 def test_truncated_file_is_one_clear_error(tmp_path):

@@ -153,6 +153,35 @@ def test_mapping_puts_a_cube_corner_on_the_corner(camera, pipeline):
     assert tops.any() and np.all(np.abs(lm.p_ned_m[used][tops, 2] + 3.0) < 0.3)
 
 
+def test_a_frame_detected_shrunk_finds_the_corners_in_full_resolution_pixels(camera, pipeline):
+    """A 1 m cube from 5 m, detected at 0.4 scale: its top corners, in full-resolution pixels, within 2.5 px
+    (one detection pixel) of where the camera model projects them, and the features say their scale."""
+    world = make_world([{"east_m": 0.3, "north_m": -0.2, "size_m": 1.0, "color": "red", "yaw_deg": 25}])
+    pose = CameraPose(np.array([0.0, 0.0, -5.0]), R_BODY_CAM_DOWN)
+    image = Renderer(world, camera).render(pose).image_bgr
+    feats = FeatureDetector(pipeline.detector).detect(image, pose.R_ned_cam, scale=0.4)
+    assert feats.scale == 0.4
+    top = world.cubes[0].vertices_ned()
+    top = top[top[:, 2] < -0.5]
+    uv, _ = pose.project(camera, top)
+    nearest = np.min(np.linalg.norm(uv[:, None, :] - feats.uv_px[None], axis=2), axis=1)
+    assert np.all(nearest < 2.5), nearest
+
+
+def test_detection_scale_follows_the_range_the_map_saw_its_landmarks_at(camera, pipeline):
+    pts = np.column_stack([np.linspace(-3, 3, 20), np.linspace(3, -3, 20), np.zeros(20)])
+    lm, _ = synthetic_map(camera, pts)
+    lm.descriptor_range_m[: len(pts)] = 16.0
+    loc = Localiser(pipeline, camera, R_BODY_CAM_DOWN, lm)
+    prior = PositionPrior(np.array([0.0, 0.0, -8.0]), 0.2)
+    assert loc.detection_scale(8.0, prior) == pytest.approx(0.5, abs=1e-3)  # half the range: half the size
+    assert loc.detection_scale(14.0, prior) == 1.0  # within the detector's own pyramid step
+    assert loc.detection_scale(1.0, prior) == pipeline.positioning.min_detection_scale
+    assert loc.detection_scale(8.0, None) == 1.0  # no prior: no idea which landmarks are in view
+    lm.descriptor_range_m[: len(pts)] = np.nan  # a map from before the ranges were kept
+    assert loc.detection_scale(8.0, prior) == 1.0
+
+
 @pytest.mark.slow
 def test_short_mapping_then_positioning_flight(pipeline):
     """A small survey over two different cubes, then a crossing flight without GPS: per-frame thresholds."""

@@ -59,7 +59,8 @@ def test_gps1_rejoins_only_after_agreeing_for_rejoin_s():
 def test_no_recent_correction_means_no_fix():
     s = Supervisor()
     assert s.decide(0.0, sigma_h_m=None, last_correction_t_s=None).mode == Mode.NO_FIX
-    assert s.decide(10.0, sigma_h_m=0.1, last_correction_t_s=2.0).mode == Mode.NO_FIX  # 8 s old
+    assert s.decide(20.0, sigma_h_m=0.1, last_correction_t_s=2.0).mode == Mode.NO_FIX  # 18 s old
+    assert s.decide(20.0, sigma_h_m=0.5, last_correction_t_s=8.0).mode == Mode.POSITIONING  # 12 s on the IMU
     assert s.decide(10.0, sigma_h_m=5.0, last_correction_t_s=9.9).mode == Mode.NO_FIX  # too uncertain
 
 

@@ -201,6 +201,11 @@ class GpsInstance:
         """True when a message was once received and none for more than 4 s."""
         return self._last_t_s is not None and t_s - self._last_t_s > GPS_TIMEOUT_S
 
+    @property
+    def last_fix_t_s(self) -> float | None:
+        """When the latest reading arrived (emulated s): ArduPilot's ``last_fix_time_ms``."""
+        return self._last_t_s
+
     def reading(self, t_s: float) -> GpsReading | None:
         """The latest reading, or None before the first message and after a timeout."""
         return None if self.timed_out(t_s) else self._reading
@@ -1173,18 +1178,23 @@ class MavlinkServer:
         self.link.mav.gps2_raw_send(*fields[:10], 0, 0, 0, 0, fields[10])
 
     def _gps_fields(self, instance: int) -> tuple:
-        """time_usec, fix, lat, lon, alt mm, eph, epv, vel cm/s, cog cdeg, sats, h_acc mm of one instance."""
+        """time_usec, fix, lat, lon, alt mm, eph, epv, vel cm/s, cog cdeg, sats, h_acc mm of one instance.
+
+        ``time_usec`` is the boot time of the latest fix, as AP_GPS::send_mavlink_gps_raw sends it
+        (``last_fix_time_ms * 1000``): the stream may send a reading up to one GPS period after it arrived.
+        """
         t_s = self.sim.t_s
         gps = self.sim.gps[instance]
         reading = gps.reading(t_s)
         fix = gps.fix_type(t_s)
         if reading is None:
             return int(t_s * 1e6), fix, 0, 0, 0, 65535, 65535, 0, 0, 0, 0
+        t_fix_s = gps.last_fix_t_s if gps.last_fix_t_s is not None else t_s
         v = reading.v_ned_m_s
         cog_cdeg = int(round(math.degrees(math.atan2(v[1], v[0])) % 360.0 * 100)) % 36000
         h_acc_mm = 0 if math.isnan(reading.h_acc_m) else int(round(reading.h_acc_m * 1e3))
         eph = 121 if fix >= FIX_3D else 9999
-        return (int(t_s * 1e6), fix, reading.lat_e7, reading.lon_e7, int(round(reading.alt_amsl_m * 1e3)), eph, 200,
+        return (int(round(t_fix_s * 1e6)), fix, reading.lat_e7, reading.lon_e7, int(round(reading.alt_amsl_m * 1e3)), eph, 200,
                 int(round(math.hypot(v[0], v[1]) * 100)), cog_cdeg, reading.satellites, h_acc_mm)
 
     def _truth_geodetic(self) -> tuple[int, int, float]:

@@ -18,12 +18,15 @@ _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
 class Features:
     """Point features of one frame.
 
-    uv_px : (N, 2) float64, px; descriptors : (N, 32) uint8 (ORB, 256 bits); octave : (N,) int pyramid level.
+    uv_px : (N, 2) float64, full-resolution px; descriptors : (N, 32) uint8 (ORB, 256 bits); octave : (N,) int
+    pyramid level; scale : the image scale they were detected at (detection px per full-resolution px, 1 = full
+    resolution), so that a keypoint of octave ``k`` spans ``scale_factor**k / scale`` full-resolution px.
     """
 
     uv_px: np.ndarray
     descriptors: np.ndarray
     octave: np.ndarray
+    scale: float = 1.0
 
     def __len__(self) -> int:
         return len(self.uv_px)
@@ -47,13 +50,27 @@ class FeatureDetector:
             fastThreshold=cfg.fast_threshold,
         )
 
-    def detect(self, image: np.ndarray, R_ned_cam: np.ndarray | None = None) -> "Features":
+    def detect(self, image: np.ndarray, R_ned_cam: np.ndarray | None = None, scale: float = 1.0) -> "Features":
         """Features of ``image``. With the camera's attitude ``R_ned_cam`` (and ``north_aligned`` set), every
-        descriptor is taken in the direction of north instead of the keypoint's own orientation."""
+        descriptor is taken in the direction of north instead of the keypoint's own orientation.
+
+        ``scale`` < 1 detects on the image shrunk by that factor (area interpolation), as a camera ``1 / scale``
+        times farther away would see it: a frame taken closer to the ground than the map's descriptors then
+        describes its corners alike. Positions are returned in full-resolution pixels all the same.
+        """
+        if not 0.0 < scale <= 1.0:
+            raise ValueError(f"detection scale must be in (0, 1], got {scale}")
         angle = north_angle_deg(R_ned_cam) if (self.cfg.north_aligned and R_ned_cam is not None) else None
-        feats = detect(self.orb, image, self.cfg.min_harris, angle)
+        gray = to_gray(image)
+        if scale < 1.0 and gray.size:
+            size = (max(int(round(gray.shape[1] * scale)), 1), max(int(round(gray.shape[0] * scale)), 1))
+            gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+        feats = detect(self.orb, gray, self.cfg.min_harris, angle)
         if self.cfg.subpixel_window_px > 0 and len(feats):
-            feats = refine_subpixel(to_gray(image), feats, self.cfg.subpixel_window_px)
+            feats = refine_subpixel(gray, feats, self.cfg.subpixel_window_px)
+        if scale < 1.0:
+            # Pixel centres: detection pixel u covers full-resolution [u / s, (u + 1) / s).
+            feats = Features((feats.uv_px + 0.5) / scale - 0.5, feats.descriptors, feats.octave, scale)
         return feats
 
 
@@ -112,7 +129,7 @@ def refine_subpixel(gray: np.ndarray, feats: Features, window_px: int) -> Featur
     # A point that wandered off (a weak corner) keeps its detector position.
     moved = np.linalg.norm(refined - feats.uv_px, axis=1)
     uv = np.where((moved <= window_px)[:, None], refined, feats.uv_px)
-    return Features(uv, feats.descriptors, feats.octave)
+    return Features(uv, feats.descriptors, feats.octave, feats.scale)
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 Each landmark keeps its ORB descriptor, its position in the local NED frame, the information matrix of that
 position (the inverse covariance, upper triangle), how often it was seen, and how straight down the view was
-that gave its descriptor. Positions are refined in information form, so a landmark seen from several places
+that gave its descriptor and at what range it was taken (its scale). Positions are refined in information form, so a landmark seen from several places
 gets its height as well as its ground position.
 
 Landmarks near a place are found through a :class:`GridIndex` (a uniform north/east grid kept as (cell, id)
@@ -155,6 +155,8 @@ class LandmarkMap:
 
     #: Capacity grows by this factor when full: room for amortised appends at a bounded memory slack.
     GROWTH = 1.5
+    #: The per-landmark arrays, in the order of the map file.
+    COLUMNS = ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "descriptor_range_m", "chi2_mean", "n_visible")
 
     def __init__(self, capacity: int = 1024, index: GridIndex | None = None, descriptor_bytes: int = DESCRIPTOR_BYTES) -> None:
         self._n = 0
@@ -164,6 +166,9 @@ class LandmarkMap:
         self.info_packed = np.zeros((capacity, 6), np.float32)
         self.n_seen = np.zeros(capacity, np.uint16)
         self.view_cos = np.zeros(capacity, np.float16)
+        # The range (m) its descriptor saw the landmark at: camera distance times the keypoint's pyramid scale.
+        # A frame taken much closer must be scaled down to describe it alike. NaN: unknown.
+        self.descriptor_range_m = np.full(capacity, np.nan, np.float16)
         self.chi2_mean = np.zeros(capacity, np.float16)
         self.n_visible = np.zeros(capacity, np.uint16)
 
@@ -193,20 +198,21 @@ class LandmarkMap:
         self.index.sync(self.p_ned_m[: self._n])
 
     def _columns(self):
-        return (self.descriptors, self.p_ned_m, self.info_packed, self.n_seen, self.view_cos, self.chi2_mean, self.n_visible)
+        return tuple(getattr(self, name) for name in self.COLUMNS)
 
     def _grow(self, need: int) -> None:
         cap = len(self.n_seen)
         if need <= cap:
             return
         new_cap = max(need, int(self.GROWTH * cap) + 1)
-        for name in ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "chi2_mean", "n_visible"):
+        for name in self.COLUMNS:
             old = getattr(self, name)
-            new = np.zeros((new_cap,) + old.shape[1:], old.dtype)
+            new = np.full((new_cap,) + old.shape[1:], np.nan if name == "descriptor_range_m" else 0, old.dtype)
             new[: self._n] = old[: self._n]
             setattr(self, name, new)
 
-    def add(self, descriptors: np.ndarray, p_ned_m: np.ndarray, info: np.ndarray, view_cos: np.ndarray) -> np.ndarray:
+    def add(self, descriptors: np.ndarray, p_ned_m: np.ndarray, info: np.ndarray, view_cos: np.ndarray,
+            descriptor_range_m: np.ndarray | float = np.nan) -> np.ndarray:
         """Append landmarks seen once. info (M, 3, 3) 1/m^2. Returns their ids (M,)."""
         m = len(descriptors)
         self._grow(self._n + m)
@@ -216,19 +222,21 @@ class LandmarkMap:
         self.info_packed[ids] = pack_sym(info)
         self.n_seen[ids] = 1
         self.view_cos[ids] = view_cos
+        self.descriptor_range_m[ids] = descriptor_range_m
         self.chi2_mean[ids] = 0.0
         self.n_visible[ids] = 1
         self._n += m
         return ids
 
     def observe(
-        self, ids: np.ndarray, A_obs: np.ndarray, b_obs: np.ndarray, descriptors: np.ndarray, view_cos: np.ndarray, chi2: np.ndarray
+        self, ids: np.ndarray, A_obs: np.ndarray, b_obs: np.ndarray, descriptors: np.ndarray, view_cos: np.ndarray, chi2: np.ndarray,
+        descriptor_range_m: np.ndarray | float = np.nan,
     ) -> None:
         """Fuse one observation into each landmark in ``ids`` (unique).
 
         The observation is in information form: ``A_obs`` (M, 3, 3) 1/m^2 and ``b_obs = A_obs @ point`` (M, 3);
         ``chi2`` (M,) is its squared Mahalanobis innovation, averaged into the landmark's consistency. The
-        landmark keeps the descriptor of its most nadir view.
+        landmark keeps the descriptor of its most nadir view, and that view's ``descriptor_range_m``.
         """
         n_before = self.n_seen[ids].astype(np.float32)
         self.chi2_mean[ids] = (self.chi2_mean[ids].astype(np.float32) * (n_before - 1) + chi2) / n_before
@@ -243,6 +251,7 @@ class LandmarkMap:
         better = view_cos > self.view_cos[ids]
         self.descriptors[ids[better]] = descriptors[better]
         self.view_cos[ids[better]] = view_cos[better]
+        self.descriptor_range_m[ids[better]] = np.broadcast_to(descriptor_range_m, ids.shape)[better]
 
     def count_visible(self, ids: np.ndarray) -> None:
         """Count one more frame in which these landmarks were predicted inside the image."""
@@ -257,6 +266,12 @@ class LandmarkMap:
             & (self.chi2_mean[ids] <= max_chi2)
             & (n_seen >= min_found_ratio * self.n_visible[ids].astype(np.int32))
         )
+
+    def typical_descriptor_range_m(self, ids: np.ndarray) -> float:
+        """Median range (m) at which the descriptors of ``ids`` were taken; NaN when none is known."""
+        r = self.descriptor_range_m[ids].astype(np.float32)
+        r = r[np.isfinite(r)]
+        return float(np.median(r)) if len(r) else float("nan")
 
     def covariance(self, ids: np.ndarray) -> np.ndarray:
         """(M, 3, 3) position covariance, m^2."""

@@ -134,6 +134,7 @@ class Localiser:
             return NoFix(t_s, f"{len(cand)} mapped landmarks near the predicted position", n_features=n_feat)
 
         R_ned_cam = R_ned_body @ self.R_body_cam
+        inlier_px = cfg.inlier_px / features.scale  # a frame detected shrunk locates its corners more coarsely
         rays = self.camera.pixels_to_rays_cam(features.uv_px) @ R_ned_cam.T  # (N, 3) unit, NED
         # The search reaches 3 sigma of the prior, and never less than min_search_radius_m: a small object's
         # corners look alike, and both the right and a shifted reading of them must compete on full support.
@@ -141,7 +142,7 @@ class Localiser:
         radius_px = np.inf
         if prior is not None:
             search_m = max(3.0 * prior.sigma_h_m, cfg.min_search_radius_m)
-            radius_px = search_m * self.camera.focal_px / max(alt_m, 1.0) + cfg.inlier_px
+            radius_px = search_m * self.camera.focal_px / max(alt_m, 1.0) + inlier_px
         # Tracking (a prior tight enough to tell apart objects, and the symmetric readings of a large one):
         # candidates are the landmarks predicted near each feature. Acquisition (no prior, or a loose one after
         # a long stretch without fixes): candidates come from descriptors alone, and the evidence must be
@@ -167,7 +168,7 @@ class Localiser:
         feat_i, lm_id, L, d, t = feat_i[ok], lm_id[ok], L[ok], d[ok], t[ok]
         hyp = L[:, :2] - t[:, None] * d[:, :2]
         if prior is not None:
-            gate = search_m + cfg.inlier_px / self.camera.focal_px * alt_m
+            gate = search_m + inlier_px / self.camera.focal_px * alt_m
             inside = np.linalg.norm(hyp - prior.p_ned_m[:2], axis=1) <= gate
             feat_i, lm_id, L, d, t, hyp = feat_i[inside], lm_id[inside], L[inside], d[inside], t[inside], hyp[inside]
         n_corr = len(feat_i)
@@ -178,7 +179,7 @@ class Localiser:
         # what a barometer error does to an off-nadir ray.
         range_m = t * np.linalg.norm(d, axis=1)
         tan_off = np.linalg.norm(d[:, :2], axis=1) / np.abs(d[:, 2])
-        tau = cfg.inlier_px / self.camera.focal_px * range_m + 2.0 * self.cfg.noise.altitude_m * tan_off
+        tau = inlier_px / self.camera.focal_px * range_m + 2.0 * self.cfg.noise.altitude_m * tan_off
 
         corr = _Correspondences(feat_i, lm_id, L, d, hyp, tau)
         view = _View(features, R_ned_cam, alt_m, cand)
@@ -244,8 +245,27 @@ class Localiser:
     def _reading(self, corr: _Correspondences, view: _View, member_row: np.ndarray, seed: int) -> _Reading:
         """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
         inl = self._one_per_feature(member_row, corr.feat_i, np.linalg.norm(corr.hyp - corr.hyp[seed], axis=1))
-        p, cov, inl, attitude_m2 = self._refine(np.array([*corr.hyp[seed], -view.alt_m]), corr, inl, view.alt_m)
+        p, cov, inl, attitude_m2 = self._refine(np.array([*corr.hyp[seed], -view.alt_m]), corr, inl, view.alt_m, 1.0 / view.features.scale)
         return _Reading(p, cov, inl, int(inl.sum()) * self._explained_share(p, view.R_ned_cam, view.cand, view.features), attitude_m2)
+
+    def detection_scale(self, alt_m: float, prior: PositionPrior | None) -> float:
+        """The image scale (at most 1) at which to detect a frame so that its descriptors see the landmarks in
+        view at about the range the map's descriptors saw them: a frame from half the mapping height is
+        detected at half size. 1 without a prior, without landmarks near it, or when the frame is not much
+        closer than the map's views (the detector's own pyramid covers ``scale_factor``)."""
+        if prior is None or not np.isfinite(alt_m):
+            return 1.0
+        cand = self._candidates(alt_m, prior)
+        if len(cand) == 0:
+            return 1.0
+        range_map_m = self.map.typical_descriptor_range_m(cand)
+        range_now_m = float(np.median(alt_m + self.map.p_ned_m[cand, 2]))  # height above the landmarks
+        if not (np.isfinite(range_map_m) and range_map_m > 0 and range_now_m > 0):
+            return 1.0
+        scale = range_now_m / range_map_m
+        if scale * self.cfg.detector.scale_factor >= 1.0:
+            return 1.0
+        return float(np.clip(scale, self.cfg.positioning.min_detection_scale, 1.0))
 
     def _candidates(self, alt_m: float, prior: PositionPrior | None) -> np.ndarray:
         """Usable landmarks within reach of the prior's footprint (all usable ones without a prior)."""
@@ -277,7 +297,7 @@ class Localiser:
     def _explained_share(self, p: np.ndarray, R_ned_cam: np.ndarray, cand: np.ndarray, features: Features) -> float:
         """Share of the mapped landmarks that ``p`` puts well inside the image which have a feature nearby."""
         uv, front = CameraPose(p, R_ned_cam).project(self.camera, self.map.p_ned_m[cand].astype(float))
-        margin = 2.0 * self.cfg.positioning.inlier_px
+        margin = 2.0 * self.cfg.positioning.inlier_px / features.scale
         inside = front & self.camera.in_image(np.nan_to_num(uv, nan=-1e6), margin)
         if not np.any(inside):
             return 0.0
@@ -319,7 +339,7 @@ class Localiser:
         keep[order[first]] = True
         return keep
 
-    def _refine(self, p0: np.ndarray, corr: _Correspondences, inl: np.ndarray, alt_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    def _refine(self, p0: np.ndarray, corr: _Correspondences, inl: np.ndarray, alt_m: float, pixel_size: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """Weighted least squares over the inliers for the camera position and a small attitude correction.
 
         Unknowns: position (3) and a rotation ``dtheta`` (3, NED) of the telemetry attitude, which turns each ray
@@ -327,11 +347,11 @@ class Localiser:
         barometer ties the height and the telemetry ties ``dtheta`` to zero with their sigmas. Where the image
         cannot tell a tilt from a shift (one small object), the attitude prior decides and its uncertainty
         lands in the position covariance; where it can (objects spread over the view), both get better.
-        Inliers are re-selected by reprojection error.
+        Inliers are re-selected by reprojection error. ``pixel_size``: full-resolution px per detection px.
         """
         idx = np.flatnonzero(inl)
         if len(idx) < len(inl):  # only inliers can stay inliers: solve on them alone (the same numbers, less work)
-            p, cov, inl_sub, attitude_m2 = self._refine(p0, corr.subset(idx), np.ones(len(idx), bool), alt_m)
+            p, cov, inl_sub, attitude_m2 = self._refine(p0, corr.subset(idx), np.ones(len(idx), bool), alt_m, pixel_size)
             inl = np.zeros(len(inl), bool)
             inl[idx] = inl_sub
             return p, cov, inl, attitude_m2
@@ -357,7 +377,7 @@ class Localiser:
             if inl.sum() < 2:
                 break
             t = np.einsum("ki,ki->k", d, L - p)  # range along each ray, m
-            w = 1.0 / ((t * noise.pixel_px / f) ** 2 + lm_var)
+            w = 1.0 / ((t * noise.pixel_px * pixel_size / f) ** 2 + lm_var)
             # Residual r_k = P_k (L_k - p) + t_k [d_k]x dtheta = c_k + J_k z, z = (p, dtheta), linear in z.
             J = np.concatenate([-P, t[:, None, None] * dx], axis=2)  # (K, 3, 6)
             c = np.einsum("kij,kj->ki", P, L)
@@ -371,6 +391,6 @@ class Localiser:
             chi2 = float(np.sum(w[inl] * np.sum(resid[inl] ** 2, axis=1)))
             dof = max(2 * int(inl.sum()) - 3, 1)
             cov = np.linalg.inv(A)[:3, :3] * max(1.0, chi2 / dof)
-            inl = inl & (err_px <= cfg.inlier_px)
+            inl = inl & (err_px <= cfg.inlier_px * pixel_size)
         attitude_m2 = float(dtheta @ prior_info[3:, 3:] @ dtheta)
         return p, cov, inl, attitude_m2

@@ -73,7 +73,8 @@ class Mapper:
         c = pose.p_cam_in_ned_m
         rays = pose.rays_ned(self.camera, features.uv_px)
         # A keypoint found on a coarser pyramid level is located less precisely.
-        sigma_px = self.cfg.noise.pixel_px * self.cfg.detector.scale_factor ** features.octave
+        descriptor_scale = self.cfg.detector.scale_factor ** features.octave / features.scale
+        sigma_px = self.cfg.noise.pixel_px * descriptor_scale
 
         # Candidates: landmarks whose projection falls in the image.
         reach = max(nav.alt_m, 1.0) * self._footprint_tan + 5.0
@@ -93,7 +94,8 @@ class Mapper:
             rng_m = np.linalg.norm(self.map.p_ned_m[matched_lm].astype(float) - c, axis=1)
             A = ray_information(d, self._sigma_perp(rng_m, sigma_px[matched_feat]))
             b = np.einsum("nij,j->ni", A, c)
-            self.map.observe(matched_lm, A, b, features.descriptors[matched_feat], d[:, 2].astype(np.float16), chi2)
+            self.map.observe(matched_lm, A, b, features.descriptors[matched_feat], d[:, 2].astype(np.float16), chi2,
+                             rng_m * descriptor_scale[matched_feat])
             ids_out[matched_feat] = matched_lm
 
         # Unmatched features become new landmarks on the ground plane, their height free within a few metres
@@ -106,7 +108,7 @@ class Mapper:
             rng_m = np.linalg.norm(p0 - c, axis=1)
             A = ray_information(rays[new], self._sigma_perp(rng_m, sigma_px[new]))
             A[:, 2, 2] += 1.0 / cfg.initial_height_sigma_m**2
-            ids_out[new] = self.map.add(features.descriptors[new], p0, A, rays[new, 2].astype(np.float16))
+            ids_out[new] = self.map.add(features.descriptors[new], p0, A, rays[new, 2].astype(np.float16), rng_m * descriptor_scale[new])
             n_added = len(new)
         return MappingResult(n, len(matched_feat), n_added, ids_out)
 

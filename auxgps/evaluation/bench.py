@@ -372,7 +372,7 @@ def _replay_positioning(script: _PositioningScript, maps: list[LandmarkMap], pip
             prior = run.nav.prior(t)
             c0 = time.thread_time()
             t0 = time.perf_counter()
-            feats = parts.detector.detect(image, tel.R_ned_body @ parts.R_body_cam)
+            feats = parts.detector.detect(image, tel.R_ned_body @ parts.R_body_cam, run.localiser.detection_scale(tel.alt_m, prior))
             t1 = time.perf_counter()
             res = run.localiser.locate(feats, t, tel.R_ned_body, tel.alt_m, prior)
             t2 = time.perf_counter()
@@ -410,8 +410,7 @@ def padded_map(real: LandmarkMap, n_total: int, pipeline: PipelineConfig, rng: n
     centre, side_real = (lo + hi) / 2.0, max(float(np.sqrt(np.prod(hi - lo))), 1.0)
     side = side_real * np.sqrt(n_total / n_real)
     out = LandmarkMap(capacity=max(n_total, 1))
-    cols = ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "chi2_mean", "n_visible")
-    for name in cols:
+    for name in LandmarkMap.COLUMNS:
         getattr(out, name)[:n_real] = getattr(real, name)[:n_real]
     out._n = n_real
     n_pad = n_total - n_real
@@ -424,7 +423,8 @@ def padded_map(real: LandmarkMap, n_total: int, pipeline: PipelineConfig, rng: n
         pts = pts[:n_pad]
         desc = rng.integers(0, 256, (n_pad, 32), dtype=np.uint8)
         info = np.repeat(np.diag([1.0 / 0.03**2, 1.0 / 0.03**2, 1.0 / 0.1**2])[None], n_pad, 0)
-        ids = out.add(desc, np.column_stack([pts, np.zeros(n_pad)]), info, np.ones(n_pad))
+        ranges = rng.choice(real.descriptor_range_m[:n_real], n_pad) if n_real else np.nan
+        ids = out.add(desc, np.column_stack([pts, np.zeros(n_pad)]), info, np.ones(n_pad), ranges)
         m = pipeline.mapping
         out.n_seen[ids] = 2 * m.min_seen
         out.n_visible[ids] = 2 * m.min_seen

@@ -170,8 +170,9 @@ def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: Pipeli
             if blackout[0] is not None and blackout[0] <= t < blackout[1]:
                 image = np.zeros_like(image)  # the camera is blinded
             t0 = time.perf_counter()
-            feats = su.detector.detect(image, tel.R_ned_body @ su.R_body_cam)
-            res = su.localiser.locate(feats, t, tel.R_ned_body, tel.alt_m, nav.prior(t))
+            prior = nav.prior(t)
+            feats = su.detector.detect(image, tel.R_ned_body @ su.R_body_cam, su.localiser.detection_scale(tel.alt_m, prior))
+            res = su.localiser.locate(feats, t, tel.R_ned_body, tel.alt_m, prior)
             pos_ms.append((time.perf_counter() - t0) * 1e3)
             n_feat.append(len(feats))
             eligible = _cube_fully_in_view(world, su.camera, frame.pose) and image is frame.image_bgr

@@ -52,6 +52,8 @@ class Imu:
 
 @dataclass(frozen=True)
 class Gps1:
+    """GPS1 as the autopilot reports it (GPS_RAW_INT); ``t_s`` is when the autopilot got the fix, local clock."""
+
     t_s: float
     fix_type: int
     satellites: int
@@ -106,6 +108,14 @@ class BootClock:
             recent.popleft()
         return time_boot_ms / 1000.0 + recent[0][1]
 
+    def local(self, time_boot_ms: float) -> float | None:
+        """An earlier boot-time stamp (a GPS fix's time) on the local clock, without taking it as an arrival;
+        None before the first :meth:`to_local`."""
+        return time_boot_ms / 1000.0 + self._recent[0][1] if self._recent else None
+
+
+BOOT_TIME_MAX_US = 10 * 365 * 86400 * 1e6  # a time_usec below ten years is a boot time, above it UNIX time
+
 
 def decode(msg, clock: BootClock, arrival_s: float):
     """One autopilot message -> a record, or None for messages auxgps does not use."""
@@ -117,7 +127,11 @@ def decode(msg, clock: BootClock, arrival_s: float):
         return Imu(clock.to_local(msg.time_boot_ms, arrival_s), acc)
     if kind == "GPS_RAW_INT":
         h_acc = msg.h_acc / 1000.0 if getattr(msg, "h_acc", 0) else (msg.eph / 100.0 if msg.eph != 65535 else 99.0)
-        return Gps1(arrival_s, msg.fix_type, msg.satellites_visible, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, h_acc)
+        # ArduPilot stamps the reading with the boot time of the fix (last_fix_time_ms), which may be up to one
+        # GPS period before the message is sent; other autopilots send UNIX time, and then arrival must do.
+        t_fix = clock.local(msg.time_usec / 1000.0) if 0 < msg.time_usec < BOOT_TIME_MAX_US else None
+        t = min(t_fix, arrival_s) if t_fix is not None and t_fix >= arrival_s - 1.0 else arrival_s
+        return Gps1(t, msg.fix_type, msg.satellites_visible, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, h_acc)
     if kind == "GLOBAL_POSITION_INT":
         t = clock.to_local(msg.time_boot_ms, arrival_s)
         return Position(t, msg.lat / 1e7, msg.lon / 1e7, msg.alt / 1000.0, msg.relative_alt / 1000.0)

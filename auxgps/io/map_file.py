@@ -1,11 +1,11 @@
 """Landmark map files: a versioned, documented format, written atomically.
 
-Format (version 2): a NumPy ``.npz`` archive (uncompressed) holding
+Format (version 3): a NumPy ``.npz`` archive (uncompressed) holding
 
 ======================  =================  ===============================================================
 array                   shape, dtype       meaning
 ======================  =================  ===============================================================
-``meta``                (), str (JSON)     ``{"format": "auxgps-map", "version": 2, "origin": {lat_deg,
+``meta``                (), str (JSON)     ``{"format": "auxgps-map", "version": 3, "origin": {lat_deg,
                                            lon_deg, alt_amsl_m}, "count": N, "descriptor": "orb" | "sift"}``;
                                            a map built from photos adds ``cameras`` (camera id ->
                                            ``{width_px, height_px, K, dist}``, refined intrinsics),
@@ -18,10 +18,13 @@ array                   shape, dtype       meaning
 ``n_seen``              (N,) uint16        observations fused (photos: views of the point)
 ``n_visible``           (N,) uint16        frames that should have seen it
 ``view_cos``            (N,) float16       down-component of the view ray that gave the descriptor
+``descriptor_range_m``  (N,) float16       range that view saw it at, times its keypoint's pyramid scale, m
+                                           (NaN: unknown)
 ``chi2_mean``           (N,) float16       mean squared Mahalanobis innovation of its observations
 ======================  =================  ===============================================================
 
-Version 1 is version 2 without ``descriptor`` (always ORB) and is still read. A file is written to a temporary
+Versions 1 and 2 are still read: version 2 is version 3 without ``descriptor_range_m`` (read as unknown), and
+version 1 is version 2 without ``descriptor`` in ``meta`` (always ORB). A file is written to a temporary
 name in the same folder, flushed to disk and renamed over the target, so a crash leaves either the old map or
 the new one, never half of one.
 """
@@ -43,8 +46,8 @@ from auxgps.core.photo_map import PhotoMap, SolvedPhoto
 from auxgps.errors import MapError
 
 FORMAT = "auxgps-map"
-VERSION = 2
-READABLE_VERSIONS = (1, 2)
+VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 DESCRIPTOR_BYTES = {"orb": 32, "sift": 128}
 _COLUMNS = {
     "descriptors": (np.uint8, None),  # width set by the descriptor kind
@@ -53,6 +56,7 @@ _COLUMNS = {
     "n_seen": (np.uint16, ()),
     "n_visible": (np.uint16, ()),
     "view_cos": (np.float16, ()),
+    "descriptor_range_m": (np.float16, ()),
     "chi2_mean": (np.float16, ()),
 }
 
@@ -102,6 +106,9 @@ def _read(path: Path) -> tuple[dict, dict, LocalFrame]:
             columns = {}
             for name, (dtype, tail) in _COLUMNS.items():
                 tail = (DESCRIPTOR_BYTES[kind],) if tail is None else tail
+                if name == "descriptor_range_m" and meta["version"] < 3:
+                    columns[name] = np.full(n, np.nan, dtype)
+                    continue
                 a = data[name]
                 if a.dtype != dtype or a.shape != (n, *tail):
                     raise MapError(f"{path}: array {name} has shape {a.shape} and type {a.dtype}, expected {(n, *tail)} {np.dtype(dtype)}")
@@ -157,6 +164,7 @@ def save_photo_map(path: Path | str, photo_map: PhotoMap, frame: LocalFrame) -> 
         "n_seen": np.minimum(photo_map.n_views, np.iinfo(np.uint16).max).astype(np.uint16),
         "n_visible": np.minimum(photo_map.n_views, np.iinfo(np.uint16).max).astype(np.uint16),
         "view_cos": np.ones(n, np.float16),
+        "descriptor_range_m": np.full(n, np.nan, np.float16),
         "chi2_mean": np.zeros(n, np.float16),
     }
     _write(Path(path), meta, arrays)
