@@ -85,6 +85,9 @@ class MappingConfig:
     """Geotagging landmarks while GPS is good."""
 
     match_radius_px: Positive = 12.0
+    # A landmark whose height is still loose (new, assumed on the ground) may be this far off its prediction:
+    # the top of a 3 m cube from 10 m moves 14 px more than the ground between frames half a metre apart.
+    max_match_radius_px: Positive = 48.0
     max_hamming: Annotated[int, Field(ge=0, le=256)] = 64
     min_seen: Annotated[int, Field(ge=1)] = 11
     gate_chi2: Positive = 9.21  # 99% for 2 degrees of freedom

@@ -171,11 +171,13 @@ def test_a_frame_detected_shrunk_finds_the_corners_in_full_resolution_pixels(cam
 def test_detection_scale_follows_the_range_the_map_saw_its_landmarks_at(camera, pipeline):
     pts = np.column_stack([np.linspace(-3, 3, 20), np.linspace(3, -3, 20), np.zeros(20)])
     lm, _ = synthetic_map(camera, pts)
-    lm.descriptor_range_m[: len(pts)] = 16.0
+    mapped_from = np.array([0.0, 0.0, -16.0])
+    lm.descriptor_range_m[: len(pts)] = np.linalg.norm(pts - mapped_from, axis=1)
     loc = Localiser(pipeline, camera, R_BODY_CAM_DOWN, lm)
     prior = PositionPrior(np.array([0.0, 0.0, -8.0]), 0.2)
-    assert loc.detection_scale(8.0, prior) == pytest.approx(0.5, abs=1e-3)  # half the range: half the size
+    assert 0.45 < loc.detection_scale(8.0, prior) < 0.55  # about half the range: about half the size
     assert loc.detection_scale(14.0, prior) == 1.0  # within the detector's own pyramid step
+    assert loc.detection_scale(16.0, prior) == 1.0  # where the map was made
     assert loc.detection_scale(1.0, prior) == pipeline.positioning.min_detection_scale
     assert loc.detection_scale(8.0, None) == 1.0  # no prior: no idea which landmarks are in view
     lm.descriptor_range_m[: len(pts)] = np.nan  # a map from before the ranges were kept

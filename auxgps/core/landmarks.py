@@ -166,8 +166,8 @@ class LandmarkMap:
         self.info_packed = np.zeros((capacity, 6), np.float32)
         self.n_seen = np.zeros(capacity, np.uint16)
         self.view_cos = np.zeros(capacity, np.float16)
-        # The range (m) its descriptor saw the landmark at: camera distance times the keypoint's pyramid scale.
-        # A frame taken much closer must be scaled down to describe it alike. NaN: unknown.
+        # The range (m) from which the view that gave its descriptor saw it (over the detection scale, if that
+        # frame was shrunk): a frame taken much closer must be shrunk to describe it alike. NaN: unknown.
         self.descriptor_range_m = np.full(capacity, np.nan, np.float16)
         self.chi2_mean = np.zeros(capacity, np.float16)
         self.n_visible = np.zeros(capacity, np.uint16)
@@ -266,12 +266,6 @@ class LandmarkMap:
             & (self.chi2_mean[ids] <= max_chi2)
             & (n_seen >= min_found_ratio * self.n_visible[ids].astype(np.int32))
         )
-
-    def typical_descriptor_range_m(self, ids: np.ndarray) -> float:
-        """Median range (m) at which the descriptors of ``ids`` were taken; NaN when none is known."""
-        r = self.descriptor_range_m[ids].astype(np.float32)
-        r = r[np.isfinite(r)]
-        return float(np.median(r)) if len(r) else float("nan")
 
     def covariance(self, ids: np.ndarray) -> np.ndarray:
         """(M, 3, 3) position covariance, m^2."""

@@ -250,19 +250,19 @@ class Localiser:
 
     def detection_scale(self, alt_m: float, prior: PositionPrior | None) -> float:
         """The image scale (at most 1) at which to detect a frame so that its descriptors see the landmarks in
-        view at about the range the map's descriptors saw them: a frame from half the mapping height is
-        detected at half size. 1 without a prior, without landmarks near it, or when the frame is not much
-        closer than the map's views (the detector's own pyramid covers ``scale_factor``)."""
+        view at about the range the map's descriptors saw them from: a frame from half the mapping range is
+        detected at half size. 1 without a prior, without landmarks near it with a known range, or when the
+        frame is not much closer than the map's views (the detector's own pyramid covers ``scale_factor``)."""
         if prior is None or not np.isfinite(alt_m):
             return 1.0
         cand = self._candidates(alt_m, prior)
-        if len(cand) == 0:
+        range_map_m = self.map.descriptor_range_m[cand].astype(float)
+        known = np.isfinite(range_map_m) & (range_map_m > 0)
+        if not np.any(known):
             return 1.0
-        range_map_m = self.map.typical_descriptor_range_m(cand)
-        range_now_m = float(np.median(alt_m + self.map.p_ned_m[cand, 2]))  # height above the landmarks
-        if not (np.isfinite(range_map_m) and range_map_m > 0 and range_now_m > 0):
-            return 1.0
-        scale = range_now_m / range_map_m
+        camera_ned_m = np.array([prior.p_ned_m[0], prior.p_ned_m[1], -alt_m])
+        range_now_m = np.linalg.norm(self.map.p_ned_m[cand[known]] - camera_ned_m, axis=1)
+        scale = float(np.median(range_now_m / range_map_m[known]))
         if scale * self.cfg.detector.scale_factor >= 1.0:
             return 1.0
         return float(np.clip(scale, self.cfg.positioning.min_detection_scale, 1.0))
@@ -360,8 +360,9 @@ class Localiser:
         f = self.camera.focal_px
         L, d = corr.L, corr.d
         lm_cov = self.map.covariance(corr.lm_id)
-        lm_var = np.trace(lm_cov[:, :2, :2], axis1=1, axis2=2) / 2.0
         P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+        # A landmark's uncertainty across its ray (per axis): off nadir, its height error counts as well.
+        lm_var = np.einsum("kij,kji->k", lm_cov, P) / 2.0
         dx = np.zeros((len(d), 3, 3))  # cross-product matrices [d]x
         dx[:, 0, 1], dx[:, 0, 2], dx[:, 1, 2] = -d[:, 2], d[:, 1], -d[:, 0]
         dx[:, 1, 0], dx[:, 2, 0], dx[:, 2, 1] = d[:, 2], -d[:, 1], d[:, 0]

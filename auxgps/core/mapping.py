@@ -73,8 +73,7 @@ class Mapper:
         c = pose.p_cam_in_ned_m
         rays = pose.rays_ned(self.camera, features.uv_px)
         # A keypoint found on a coarser pyramid level is located less precisely.
-        descriptor_scale = self.cfg.detector.scale_factor ** features.octave / features.scale
-        sigma_px = self.cfg.noise.pixel_px * descriptor_scale
+        sigma_px = self.cfg.noise.pixel_px * self.cfg.detector.scale_factor ** features.octave / features.scale
 
         # Candidates: landmarks whose projection falls in the image.
         reach = max(nav.alt_m, 1.0) * self._footprint_tan + 5.0
@@ -95,7 +94,7 @@ class Mapper:
             A = ray_information(d, self._sigma_perp(rng_m, sigma_px[matched_feat]))
             b = np.einsum("nij,j->ni", A, c)
             self.map.observe(matched_lm, A, b, features.descriptors[matched_feat], d[:, 2].astype(np.float16), chi2,
-                             rng_m * descriptor_scale[matched_feat])
+                             rng_m / features.scale)
             ids_out[matched_feat] = matched_lm
 
         # Unmatched features become new landmarks on the ground plane, their height free within a few metres
@@ -108,7 +107,7 @@ class Mapper:
             rng_m = np.linalg.norm(p0 - c, axis=1)
             A = ray_information(rays[new], self._sigma_perp(rng_m, sigma_px[new]))
             A[:, 2, 2] += 1.0 / cfg.initial_height_sigma_m**2
-            ids_out[new] = self.map.add(features.descriptors[new], p0, A, rays[new, 2].astype(np.float16), rng_m * descriptor_scale[new])
+            ids_out[new] = self.map.add(features.descriptors[new], p0, A, rays[new, 2].astype(np.float16), rng_m / features.scale)
             n_added = len(new)
         return MappingResult(n, len(matched_feat), n_added, ids_out)
 
@@ -128,7 +127,7 @@ class Mapper:
         """
         cfg = self.cfg.mapping
         none = np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-        fi, ci = pairs_within(features.uv_px, uv_lm, cfg.match_radius_px)
+        fi, ci = pairs_within(features.uv_px, uv_lm, cfg.max_match_radius_px)
         if len(fi) == 0:
             return none
         offsets = features.uv_px[fi] - uv_lm[ci]  # (P, 2) px
@@ -144,7 +143,7 @@ class Mapper:
         L = self.map.p_ned_m[lm].astype(float)
         range_m = np.linalg.norm(L - c, axis=1)
         sigma_lm_px = np.sqrt(np.linalg.eigvalsh(cov)[:, -1]) / range_m * self.camera.focal_px
-        radius = np.minimum(3.0 * np.hypot(sigma_px[fi] * 2.0, sigma_lm_px), cfg.match_radius_px)
+        radius = np.minimum(3.0 * np.hypot(sigma_px[fi] * 2.0, sigma_lm_px), cfg.max_match_radius_px)
         d_shifted = np.linalg.norm(offsets - shift, axis=1)
         m2 = ray_mahalanobis2(L, cov, c, rays[fi], self._sigma_perp(range_m, sigma_px[fi]))
         ok = (d_shifted <= radius) & (m2 <= cfg.gate_chi2)

@@ -18,7 +18,7 @@ array                   shape, dtype       meaning
 ``n_seen``              (N,) uint16        observations fused (photos: views of the point)
 ``n_visible``           (N,) uint16        frames that should have seen it
 ``view_cos``            (N,) float16       down-component of the view ray that gave the descriptor
-``descriptor_range_m``  (N,) float16       range that view saw it at, times its keypoint's pyramid scale, m
+``descriptor_range_m``  (N,) float16       range that view saw it from, over the frame's detection scale, m
                                            (NaN: unknown)
 ``chi2_mean``           (N,) float16       mean squared Mahalanobis innovation of its observations
 ======================  =================  ===============================================================
