@@ -84,10 +84,11 @@ class NoiseModelConfig:
 class MappingConfig:
     """Geotagging landmarks while GPS is good."""
 
-    match_radius_px: Positive = 12.0
-    # A landmark whose height is still loose (new, assumed on the ground) may be this far off its prediction:
-    # the top of a 3 m cube from 10 m moves 14 px more than the ground between frames half a metre apart.
-    max_match_radius_px: Positive = 48.0
+    edge_margin_px: Positive = 12.0  # landmarks predicted this far outside the image are still candidates
+    # A feature is matched to a landmark within 3 sigma of the landmark's predicted pixel, and never farther
+    # than this: a new landmark, placed on the ground with a loose height, may be far off (the top of a 3 m cube
+    # from 10 m moves 14 px more than the ground between frames half a metre apart).
+    match_radius_px: Positive = 48.0
     max_hamming: Annotated[int, Field(ge=0, le=256)] = 64
     min_seen: Annotated[int, Field(ge=1)] = 11
     gate_chi2: Positive = 9.21  # 99% for 2 degrees of freedom

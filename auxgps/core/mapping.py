@@ -81,7 +81,7 @@ class Mapper:
         matched_feat = matched_lm = np.zeros(0, int)
         if len(cand):
             uv_lm, in_front = pose.project(self.camera, self.map.p_ned_m[cand].astype(float))
-            keep = in_front & self.camera.in_image(np.nan_to_num(uv_lm, nan=-1e6), -cfg.match_radius_px)
+            keep = in_front & self.camera.in_image(np.nan_to_num(uv_lm, nan=-1e6), -cfg.edge_margin_px)
             cand, uv_lm = cand[keep], uv_lm[keep]
             self.map.count_visible(cand[self.camera.in_image(uv_lm)])
             if len(cand):
@@ -127,7 +127,7 @@ class Mapper:
         """
         cfg = self.cfg.mapping
         none = np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-        fi, ci = pairs_within(features.uv_px, uv_lm, cfg.max_match_radius_px)
+        fi, ci = pairs_within(features.uv_px, uv_lm, cfg.match_radius_px)
         if len(fi) == 0:
             return none
         offsets = features.uv_px[fi] - uv_lm[ci]  # (P, 2) px
@@ -143,7 +143,7 @@ class Mapper:
         L = self.map.p_ned_m[lm].astype(float)
         range_m = np.linalg.norm(L - c, axis=1)
         sigma_lm_px = np.sqrt(np.linalg.eigvalsh(cov)[:, -1]) / range_m * self.camera.focal_px
-        radius = np.minimum(3.0 * np.hypot(sigma_px[fi] * 2.0, sigma_lm_px), cfg.max_match_radius_px)
+        radius = np.minimum(3.0 * np.hypot(sigma_px[fi] * 2.0, sigma_lm_px), cfg.match_radius_px)
         d_shifted = np.linalg.norm(offsets - shift, axis=1)
         m2 = ray_mahalanobis2(L, cov, c, rays[fi], self._sigma_perp(range_m, sigma_px[fi]))
         ok = (d_shifted <= radius) & (m2 <= cfg.gate_chi2)
