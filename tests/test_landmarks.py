@@ -71,3 +71,14 @@ def test_index_memory_is_counted():
 def test_bad_cell_size_is_refused():
     with pytest.raises(ValueError):
         GridIndex(cell_m=0.0)
+
+
+def test_horizontal_variance_equals_the_mean_of_the_covariance_diagonal():
+    rng = np.random.default_rng(5)
+    lm = LandmarkMap()
+    rays = rng.normal(size=(50, 4, 3))
+    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
+    info = np.einsum("nk,nkij->nij", rng.uniform(100.0, 1e4, (50, 4)), np.eye(3) - rays[..., :, None] * rays[..., None, :])
+    ids = lm.add(rng.integers(0, 256, (50, 32), dtype=np.uint8), rng.normal(size=(50, 3)), info, np.ones(50))
+    cov = lm.covariance(ids)
+    np.testing.assert_allclose(lm.horizontal_variance_m2(ids), (cov[:, 0, 0] + cov[:, 1, 1]) / 2.0, rtol=1e-9)
