@@ -233,7 +233,7 @@ class Localiser:
             if covered[s]:
                 continue
             covered |= np.linalg.norm(seed_hyp - seed_hyp[s], axis=1) <= seed_tau
-            r = self._reading(corr, view, members[s], seeds[s])
+            r = self._reading(corr, view, members[:, s], seeds[s])
             if int(r.inl.sum()) >= min_inliers and np.all(np.isfinite(r.p)):
                 readings.append(r)
                 lls.append(r.score - 0.5 * r.attitude_m2 - 0.5 * _prior_m2(r, prior, cfg.prior_floor_m))
@@ -322,17 +322,20 @@ class Localiser:
         return fi[ok], cand[ci[ok]]
 
     def _consensus(self, corr: _Correspondences, n_feat: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Seed indices (S,), their support in distinct features (S,), and the (S, K) membership matrix."""
+        """Seed indices (S,), their support in distinct features (S,), and the (K, S) membership matrix."""
         cfg = self.cfg.positioning
         hyp, tau, feat_i = corr.hyp, corr.tau, corr.feat_i
         K = len(hyp)
         # Seeds: every correspondence when few, else an even spread (deterministic).
         seeds = np.arange(K) if K <= cfg.max_seeds else np.linspace(0, K - 1, cfg.max_seeds).astype(int)
-        members = cdist(hyp[seeds], hyp) <= tau[None, :]  # (S, K); cdist: one pass, the same numbers as a norm
-        # Support in distinct features: members grouped by feature, one vote per group with any member.
+        members = cdist(hyp, hyp[seeds]) <= tau[:, None]  # (K, S); cdist: one pass, the same numbers as a norm
+        # Support in distinct features: members grouped by feature, one vote per group with any member. A
+        # correspondence's memberships are packed eight seeds to a byte, so a feature's vote is an OR of its rows
+        # of S / 8 bytes.
         order = np.argsort(feat_i, kind="stable")
         starts = np.flatnonzero(np.r_[True, feat_i[order][1:] != feat_i[order][:-1]])
-        support = np.logical_or.reduceat(members[:, order], starts, axis=1).sum(axis=1)
+        votes = np.bitwise_or.reduceat(np.packbits(members, axis=1)[order], starts, axis=0)  # (features, S / 8)
+        support = np.unpackbits(votes, axis=1, count=len(seeds)).sum(axis=0)
         return seeds, support, members
 
     @staticmethod
