@@ -95,12 +95,15 @@ class _Correspondences:
 
 @dataclass(frozen=True)
 class _View:
-    """What a frame's readings are checked against: its features, attitude, height and candidate landmarks."""
+    """What a frame's readings are checked against: its features and a k-d tree of their pixels, attitude,
+    height, and its candidate landmarks turned into camera axes once per frame, ``cand_in_cam_axes_m`` (M, 3) m,
+    ``R_cam_ned @ p_ned``: a reading at ``p`` sees them at ``cand_in_cam_axes_m - R_cam_ned @ p``."""
 
     features: Features
+    feature_tree: cKDTree
     R_ned_cam: np.ndarray
     alt_m: float
-    cand: np.ndarray
+    cand_in_cam_axes_m: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -188,11 +191,11 @@ class Localiser:
         tau = inlier_px / self.camera.focal_px * range_m + 2.0 * self.cfg.noise.altitude_m * tan_off
 
         corr = _Correspondences(feat_i, lm_id, L, d, hyp, tau)
-        view = _View(features, R_ned_cam, alt_m, cand)
         seeds, support, members = self._consensus(corr, n_feat)
         best_support = int(support.max())
         if best_support < min_inliers:
             return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
+        view = _View(features, cKDTree(features.uv_px), R_ned_cam, alt_m, self.map.p_ned_m[cand].astype(float) @ R_ned_cam)
         verdict = self._choose(corr, view, prior, seeds, support, members, min_inliers, margin)
         if isinstance(verdict, str):
             return NoFix(t_s, verdict, best_support, n_corr, n_feat)
@@ -252,7 +255,7 @@ class Localiser:
         """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
         inl = self._one_per_feature(member_row, corr.feat_i, np.linalg.norm(corr.hyp - corr.hyp[seed], axis=1))
         p, cov, inl, attitude_m2 = self._refine(np.array([*corr.hyp[seed], -view.alt_m]), corr, inl, view.alt_m, 1.0 / view.features.scale)
-        return _Reading(p, cov, inl, int(inl.sum()) * self._explained_share(p, view.R_ned_cam, view.cand, view.features), attitude_m2)
+        return _Reading(p, cov, inl, int(inl.sum()) * self._explained_share(p, view), attitude_m2)
 
     def detection_scale(self, alt_m: float, prior: PositionPrior | None) -> float:
         """The image scale (at most 1) at which to detect a frame so that its descriptors see the landmarks in
@@ -300,15 +303,17 @@ class Localiser:
                 ci.append(m.trainIdx)
         return np.array(fi, int), cand[np.array(ci, int)] if ci else np.zeros(0, int)
 
-    def _explained_share(self, p: np.ndarray, R_ned_cam: np.ndarray, cand: np.ndarray, features: Features) -> float:
-        """Share of the mapped landmarks that ``p`` puts well inside the image which have a feature nearby."""
-        uv, front = CameraPose(p, R_ned_cam).project(self.camera, self.map.p_ned_m[cand].astype(float))
-        margin = 2.0 * self.cfg.positioning.inlier_px / features.scale
+    def _explained_share(self, p: np.ndarray, view: _View) -> float:
+        """Share of the candidate landmarks that a camera at ``p`` puts well inside the image which have a feature
+        nearby."""
+        uv, front = self.camera.project_cam(view.cand_in_cam_axes_m - view.R_ned_cam.T @ p)
+        margin = 2.0 * self.cfg.positioning.inlier_px / view.features.scale
         inside = front & self.camera.in_image(np.nan_to_num(uv, nan=-1e6), margin)
         if not np.any(inside):
             return 0.0
-        near = cKDTree(features.uv_px).query_ball_point(uv[inside], margin, return_length=True) if len(features) else 0
-        return float(np.mean(near > 0))
+        # The nearest feature within the margin (bound included, as the tree's bound is exclusive), or none (inf).
+        nearest_px, _ = view.feature_tree.query(uv[inside], k=1, distance_upper_bound=np.nextafter(margin, np.inf))
+        return float(np.mean(np.isfinite(nearest_px)))
 
     def _match_guided(self, features: Features, cand: np.ndarray, pose: CameraPose, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
         """Every (feature, landmark) pair whose predicted pixel is within ``radius_px`` and whose descriptors agree."""
