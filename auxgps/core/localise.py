@@ -128,6 +128,14 @@ class Localiser:
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=False)
         half_diag = np.hypot(camera.width_px, camera.height_px) / 2.0 / camera.focal_px
         self._footprint_tan = half_diag + 0.3
+        noise = cfg.noise
+        # What the refinement knows of its unknowns (position, attitude correction) beforehand: the barometer's
+        # height and the telemetry's attitude, information 1/m^2 and 1/rad^2.
+        self._refine_prior_info = np.diag(
+            [0.0, 0.0, 1.0 / noise.altitude_m**2]
+            + [1.0 / np.deg2rad(noise.attitude_deg) ** 2] * 2
+            + [1.0 / np.deg2rad(noise.heading_deg) ** 2]
+        )
 
     def locate(self, features: Features, t_s: float, R_ned_body: np.ndarray, alt_m: float, prior: PositionPrior | None) -> LocateResult:
         """Locate one frame. ``R_ned_body`` and ``alt_m`` come from the autopilot (attitude, barometer)."""
@@ -226,15 +234,22 @@ class Localiser:
         lls: list[float] = []
         seed_hyp, seed_tau = corr.hyp[seeds], corr.tau[seeds]
         covered = np.zeros(len(seeds), bool)  # a hypothesis of a reading already taken
-        for s in np.argsort(-support, kind="stable"):
-            if support[s] < floor or len(readings) >= cfg.max_readings:
+        by_support = np.argsort(-support, kind="stable")
+        next_at = 0
+        while len(readings) < cfg.max_readings:
+            # The next seed in falling support that no reading has covered, found in one step: a reading covers
+            # most of the seeds, and a loop over them costs more than the test.
+            uncovered = np.flatnonzero(~covered[by_support[next_at:]])
+            if len(uncovered) == 0:
+                break
+            s = by_support[next_at + uncovered[0]]
+            next_at += int(uncovered[0]) + 1
+            if support[s] < floor:
                 break
             # A reading's log-likelihood is at most its support (inliers <= support, explained share <= 1), and
             # seeds come in falling support: once one cannot come within the margin of the best, none can.
             if lls and support[s] < max(lls) - margin:
                 break
-            if covered[s]:
-                continue
             covered |= np.linalg.norm(seed_hyp - seed_hyp[s], axis=1) <= seed_tau
             r = self._reading(corr, view, members[:, s], seeds[s])
             if int(r.inl.sum()) >= min_inliers and np.all(np.isfinite(r.p)):
@@ -381,11 +396,7 @@ class Localiser:
         d_dot_L = np.einsum("ki,ki->k", d, L)
         PL = L - d_dot_L[:, None] * d  # P_k L_k, P_k = I - d_k d_k^T
         d_cross_L = d[:, [1, 2, 0]] * L[:, [2, 0, 1]] - d[:, [2, 0, 1]] * L[:, [1, 2, 0]]  # d_k x L_k
-        prior_info = np.diag(
-            [0.0, 0.0, 1.0 / noise.altitude_m**2]
-            + [1.0 / np.deg2rad(noise.attitude_deg) ** 2] * 2
-            + [1.0 / np.deg2rad(noise.heading_deg) ** 2]
-        )
+        prior_info = self._refine_prior_info
         eye3 = np.eye(3)
         p = np.asarray(p0, float)
         dtheta = np.zeros(3)
