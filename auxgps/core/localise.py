@@ -89,9 +89,6 @@ class _Correspondences:
     hyp: np.ndarray
     tau: np.ndarray
 
-    def subset(self, mask: np.ndarray) -> "_Correspondences":
-        return _Correspondences(*(a[mask] for a in (self.feat_i, self.lm_id, self.L, self.d, self.hyp, self.tau)))
-
 
 @dataclass(frozen=True)
 class _View:
@@ -323,7 +320,7 @@ class Localiser:
         nearby."""
         uv, front = self.camera.project_cam(view.cand_in_cam_axes_m - view.R_ned_cam.T @ p)
         margin = 2.0 * self.cfg.positioning.inlier_px / view.features.scale
-        inside = front & self.camera.in_image(np.nan_to_num(uv, nan=-1e6), margin)
+        inside = front & self.camera.in_image(uv, margin)  # NaN pixels (behind the camera) compare False
         if not np.any(inside):
             return 0.0
         # The nearest feature within the margin (bound included, as the tree's bound is exclusive), or none (inf).
@@ -333,7 +330,7 @@ class Localiser:
     def _match_guided(self, features: Features, cand: np.ndarray, pose: CameraPose, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
         """Every (feature, landmark) pair whose predicted pixel is within ``radius_px`` and whose descriptors agree."""
         uv, front = pose.project(self.camera, self.map.p_ned_m[cand].astype(float))
-        keep = front & self.camera.in_image(np.nan_to_num(uv, nan=-1e6), -radius_px)
+        keep = front & self.camera.in_image(uv, -radius_px)  # NaN pixels (behind the camera) compare False
         cand, uv = cand[keep], uv[keep]
         if len(cand) == 0:
             return np.zeros(0, int), np.zeros(0, int)
@@ -382,17 +379,14 @@ class Localiser:
         (K, 3, 6) Jacobians: with unit rays the projector ``P = I - d d^T`` and ``[d]x`` make every block of
         ``J^T J`` out of ``d d^T`` and ``[d]x`` alone (the same numbers to rounding, a few times faster).
         """
-        idx = np.flatnonzero(inl)
-        if len(idx) < len(inl):  # only inliers can stay inliers: solve on them alone (the same numbers, less work)
-            p, cov, inl_sub, attitude_m2 = self._refine(p0, corr.subset(idx), np.ones(len(idx), bool), alt_m, pixel_size)
-            inl = np.zeros(len(inl), bool)
-            inl[idx] = inl_sub
-            return p, cov, inl, attitude_m2
         cfg = self.cfg.positioning
         noise = self.cfg.noise
         f = self.camera.focal_px
-        L, d = corr.L, corr.d
-        lm_var = self.map.horizontal_variance_m2(corr.lm_id)
+        # Only inliers can stay inliers: solve on them alone; ``kept`` marks which of them still are.
+        idx = np.flatnonzero(inl)
+        L, d = corr.L[idx], corr.d[idx]
+        lm_var = self.map.horizontal_variance_m2(corr.lm_id[idx])
+        kept = np.ones(len(idx), bool)
         d_dot_L = np.einsum("ki,ki->k", d, L)
         PL = L - d_dot_L[:, None] * d  # P_k L_k, P_k = I - d_k d_k^T
         d_cross_L = d[:, [1, 2, 0]] * L[:, [2, 0, 1]] - d[:, [2, 0, 1]] * L[:, [1, 2, 0]]  # d_k x L_k
@@ -402,11 +396,11 @@ class Localiser:
         dtheta = np.zeros(3)
         cov = np.full((3, 3), np.nan)
         for _ in range(3):
-            n_inl = int(inl.sum())
+            n_inl = int(kept.sum())
             if n_inl < 2:
                 break
             t = d_dot_L - d @ p  # range along each ray, m
-            w = np.where(inl, 1.0 / ((t * noise.pixel_px * pixel_size / f) ** 2 + lm_var), 0.0)  # 0 off the inliers
+            w = np.where(kept, 1.0 / ((t * noise.pixel_px * pixel_size / f) ** 2 + lm_var), 0.0)  # 0 off the inliers
             # Residual r_k = P_k (L_k - p) + t_k [d_k]x dtheta = c_k + J_k z, z = (p, dtheta), J_k = [-P_k, t_k [d_k]x].
             # With unit rays P_k^T P_k = P_k, P_k [d_k]x = [d_k]x and [d_k]x^T [d_k]x = P_k, so
             # sum w J^T J = [[sum w P, -[sum w t d]x], [[sum w t d]x, sum w t^2 P]] and
@@ -429,6 +423,8 @@ class Localiser:
             chi2 = float(w @ np.einsum("ki,ki->k", resid, resid))
             dof = max(2 * n_inl - 3, 1)
             cov = np.linalg.inv(A)[:3, :3] * max(1.0, chi2 / dof)
-            inl = inl & (err_px <= cfg.inlier_px * pixel_size)
+            kept &= err_px <= cfg.inlier_px * pixel_size
         attitude_m2 = float(dtheta @ prior_info[3:, 3:] @ dtheta)
+        inl = np.zeros(len(inl), bool)
+        inl[idx] = kept
         return p, cov, inl, attitude_m2
