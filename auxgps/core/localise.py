@@ -134,8 +134,13 @@ class Localiser:
             + [1.0 / np.deg2rad(noise.heading_deg) ** 2]
         )
 
-    def locate(self, features: Features, t_s: float, R_ned_body: np.ndarray, alt_m: float, prior: PositionPrior | None) -> LocateResult:
-        """Locate one frame. ``R_ned_body`` and ``alt_m`` come from the autopilot (attitude, barometer)."""
+    def locate(self, features: Features, t_s: float, R_ned_body: np.ndarray, alt_m: float, prior: PositionPrior | None,
+               candidate_ids: np.ndarray | None = None) -> LocateResult:
+        """Locate one frame. ``R_ned_body`` and ``alt_m`` come from the autopilot (attitude, barometer).
+
+        ``candidate_ids``: what :meth:`candidates` gives for this ``alt_m`` and ``prior`` on the map as it is,
+        when the caller has it already (it asked for the frame's :meth:`detection_scale`); else it is looked up.
+        """
         cfg = self.cfg.positioning
         n_feat = len(features)
         if n_feat < cfg.min_inliers:
@@ -143,7 +148,7 @@ class Localiser:
         if not (np.all(np.isfinite(R_ned_body)) and np.isfinite(alt_m)):
             return NoFix(t_s, "attitude or altitude is not finite", n_features=n_feat)
 
-        cand = self._candidates(alt_m, prior)
+        cand = self.candidates(alt_m, prior) if candidate_ids is None else candidate_ids
         if len(cand) < cfg.min_inliers:
             return NoFix(t_s, f"{len(cand)} mapped landmarks near the predicted position", n_features=n_feat)
 
@@ -269,14 +274,16 @@ class Localiser:
         p, cov, inl, attitude_m2 = self._refine(np.array([*corr.hyp[seed], -view.alt_m]), corr, inl, view.alt_m, 1.0 / view.features.scale)
         return _Reading(p, cov, inl, int(inl.sum()) * self._explained_share(p, view), attitude_m2)
 
-    def detection_scale(self, alt_m: float, prior: PositionPrior | None) -> float:
+    def detection_scale(self, alt_m: float, prior: PositionPrior | None, candidate_ids: np.ndarray | None = None) -> float:
         """The image scale (at most 1) at which to detect a frame so that its descriptors see the landmarks in
         view at about the range the map's descriptors saw them: a frame from half the mapping height is
         detected at half size. 1 without a prior, without landmarks near it, or when the frame is not much
-        closer than the map's views (the detector's own pyramid covers ``scale_factor``)."""
+        closer than the map's views (the detector's own pyramid covers ``scale_factor``). ``candidate_ids``:
+        :meth:`candidates` for this ``alt_m`` and ``prior``, when the caller has them (to pass on to
+        :meth:`locate`, so that a frame looks them up once)."""
         if prior is None or not np.isfinite(alt_m):
             return 1.0
-        cand = self._candidates(alt_m, prior)
+        cand = self.candidates(alt_m, prior) if candidate_ids is None else candidate_ids
         if len(cand) == 0:
             return 1.0
         range_map_m = self.map.typical_descriptor_range_m(cand)
@@ -288,8 +295,8 @@ class Localiser:
             return 1.0
         return float(np.clip(scale, self.cfg.positioning.min_detection_scale, 1.0))
 
-    def _candidates(self, alt_m: float, prior: PositionPrior | None) -> np.ndarray:
-        """Usable landmarks within reach of the prior's footprint (all usable ones without a prior)."""
+    def candidates(self, alt_m: float, prior: PositionPrior | None) -> np.ndarray:
+        """Ids of the usable landmarks within reach of the prior's footprint (all usable ones without a prior)."""
         cfg = self.cfg.positioning
         m = self.cfg.mapping
         if prior is None:
