@@ -115,7 +115,7 @@ def detect(detector: cv2.ORB, image: np.ndarray, min_harris: float = 0.0, angle_
     keypoints, descriptors = detector.compute(gray, keypoints)
     if descriptors is None or not keypoints:
         return Features.empty()
-    uv = np.array([kp.pt for kp in keypoints], float)
+    uv = cv2.KeyPoint_convert(keypoints).astype(float)  # the keypoints' float32 positions, as kp.pt gives them
     octave = np.array([kp.octave for kp in keypoints], int)
     return Features(uv, descriptors, octave)
 
