@@ -60,6 +60,10 @@ class NoFix:
 
 LocateResult = Fix | NoFix
 
+#: Correspondences whose seed memberships are measured at a time: their (block, max_seeds) distances, 600 kB at
+#: 300 seeds, stay in a core's cache.
+_CONSENSUS_BLOCK = 256
+
 
 def _cross_matrix(v: np.ndarray) -> np.ndarray:
     """The cross-product matrix [v]x (3, 3) of ``v`` (3,): ``[v]x @ u = v x u``, and for rows ``u @ [v]x = u x v``."""
@@ -201,12 +205,12 @@ class Localiser:
         tau = inlier_px / self.camera.focal_px * range_m + 2.0 * self.cfg.noise.altitude_m * tan_off
 
         corr = _Correspondences(feat_i, lm_id, L, d, hyp, tau)
-        seeds, support, members = self._consensus(corr, n_feat)
+        seeds, support = self._consensus(corr)
         best_support = int(support.max())
         if best_support < min_inliers:
             return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
         view = _View(features, cKDTree(features.uv_px), R_ned_cam, alt_m, self.map.p_ned_m[cand].astype(float) @ R_ned_cam)
-        verdict = self._choose(corr, view, prior, seeds, support, members, min_inliers, margin)
+        verdict = self._choose(corr, view, prior, seeds, support, min_inliers, margin)
         if isinstance(verdict, str):
             return NoFix(t_s, verdict, best_support, n_corr, n_feat)
         p, cov, inl = verdict.p, verdict.cov, verdict.inl
@@ -218,7 +222,7 @@ class Localiser:
 
     # -- steps -------------------------------------------------------------------------------------------------
 
-    def _choose(self, corr: _Correspondences, view: _View, prior, seeds, support, members, min_inliers: int, margin: float):
+    def _choose(self, corr: _Correspondences, view: _View, prior, seeds, support, min_inliers: int, margin: float):
         """The most probable reading of the frame, or a reason (str) why the frame is ambiguous.
 
         The best-supported hypotheses that are distinct (more than their agreement radius apart) are refined
@@ -253,7 +257,7 @@ class Localiser:
             if lls and support[s] < max(lls) - margin:
                 break
             covered |= np.linalg.norm(seed_hyp - seed_hyp[s], axis=1) <= seed_tau
-            r = self._reading(corr, view, members[:, s], seeds[s])
+            r = self._reading(corr, view, seeds[s])
             if int(r.inl.sum()) >= min_inliers and np.all(np.isfinite(r.p)):
                 readings.append(r)
                 lls.append(r.score - 0.5 * r.attitude_m2 - 0.5 * _prior_m2(r, prior, cfg.prior_floor_m))
@@ -268,9 +272,10 @@ class Localiser:
                 return f"ambiguous: a reading {np.linalg.norm(readings[k].p[:2] - best.p[:2]):.2f} m away is within {ll[order[0]] - ll[k]:.1f} of the best"
         return best
 
-    def _reading(self, corr: _Correspondences, view: _View, member_row: np.ndarray, seed: int) -> _Reading:
+    def _reading(self, corr: _Correspondences, view: _View, seed: int) -> _Reading:
         """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
-        inl = self._one_per_feature(member_row, corr.feat_i, np.linalg.norm(corr.hyp - corr.hyp[seed], axis=1))
+        dist = cdist(corr.hyp, corr.hyp[seed][None])[:, 0]  # as _consensus measured it: the same members
+        inl = self._one_per_feature(dist <= corr.tau, corr.feat_i, dist)
         p, cov, inl, attitude_m2 = self._refine(np.array([*corr.hyp[seed], -view.alt_m]), corr, inl, view.alt_m, 1.0 / view.features.scale)
         return _Reading(p, cov, inl, int(inl.sum()) * self._explained_share(p, view), attitude_m2)
 
@@ -345,22 +350,30 @@ class Localiser:
         ok = hamming(features.descriptors[fi], self.map.descriptors[cand[ci]]) <= self.cfg.positioning.max_hamming
         return fi[ok], cand[ci[ok]]
 
-    def _consensus(self, corr: _Correspondences, n_feat: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Seed indices (S,), their support in distinct features (S,), and the (K, S) membership matrix."""
+    def _consensus(self, corr: _Correspondences) -> tuple[np.ndarray, np.ndarray]:
+        """Seed indices (S,) and their support in distinct features (S,).
+
+        Correspondence k is a member of seed s when its hypothesis is within its own ``tau`` of the seed's. The
+        (K, S) memberships are packed eight seeds to a byte as they are measured, a block of correspondences at
+        a time (the distances of a block stay in cache; the whole matrix of them would not), so that a
+        feature's vote is an OR of its rows of S / 8 bytes.
+        """
         cfg = self.cfg.positioning
         hyp, tau, feat_i = corr.hyp, corr.tau, corr.feat_i
         K = len(hyp)
         # Seeds: every correspondence when few, else an even spread (deterministic).
         seeds = np.arange(K) if K <= cfg.max_seeds else np.linspace(0, K - 1, cfg.max_seeds).astype(int)
-        members = cdist(hyp, hyp[seeds]) <= tau[:, None]  # (K, S); cdist: one pass, the same numbers as a norm
-        # Support in distinct features: members grouped by feature, one vote per group with any member. A
-        # correspondence's memberships are packed eight seeds to a byte, so a feature's vote is an OR of its rows
-        # of S / 8 bytes.
+        seed_hyp = hyp[seeds]
+        members_packed = np.empty((K, (len(seeds) + 7) // 8), np.uint8)
+        for k0 in range(0, K, _CONSENSUS_BLOCK):
+            block = slice(k0, k0 + _CONSENSUS_BLOCK)
+            members_packed[block] = np.packbits(cdist(hyp[block], seed_hyp) <= tau[block, None], axis=1)
+        # Support in distinct features: members grouped by feature, one vote per group with any member.
         order = np.argsort(feat_i, kind="stable")
         starts = np.flatnonzero(np.r_[True, feat_i[order][1:] != feat_i[order][:-1]])
-        votes = np.bitwise_or.reduceat(np.packbits(members, axis=1)[order], starts, axis=0)  # (features, S / 8)
+        votes = np.bitwise_or.reduceat(members_packed[order], starts, axis=0)  # (features, S / 8)
         support = np.unpackbits(votes, axis=1, count=len(seeds)).sum(axis=0)
-        return seeds, support, members
+        return seeds, support
 
     @staticmethod
     def _one_per_feature(member_row: np.ndarray, feat_i: np.ndarray, dist: np.ndarray) -> np.ndarray:
