@@ -153,6 +153,6 @@ def pairs_within(a_px: np.ndarray, b_px: np.ndarray, radius_px: float) -> tuple[
     if len(a_px) == 0 or len(b_px) == 0:
         return np.zeros(0, int), np.zeros(0, int)
     found = cKDTree(a_px).sparse_distance_matrix(cKDTree(b_px), radius_px, output_type="ndarray")
-    i, j = found["i"].astype(np.int64), found["j"].astype(np.int64)
+    i, j = found["i"], found["j"]
     order = np.argsort(i * len(b_px) + j)  # one key per pair, unique: the (i, j) order in one sort
-    return i[order], j[order]
+    return i[order].astype(np.int64), j[order].astype(np.int64)

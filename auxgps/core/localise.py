@@ -171,9 +171,10 @@ class Localiser:
         # a long stretch without fixes): candidates come from descriptors alone, and the evidence must be
         # stronger.
         tracking = prior is not None and 3.0 * prior.sigma_h_m <= cfg.max_tracking_search_m
+        p_cand_ned_m = self.map.p_ned_m[cand].astype(float)  # (M, 3) m: for the guided match and the readings
         if tracking:
             pose = CameraPose(np.array([prior.p_ned_m[0], prior.p_ned_m[1], -alt_m]), R_ned_cam)
-            feat_i, lm_id = self._match_guided(features, cand, pose, radius_px)
+            feat_i, lm_id = self._match_guided(features, cand, p_cand_ned_m, pose, radius_px)
             min_inliers, margin = cfg.min_inliers, cfg.ambiguity_margin
         else:
             feat_i, lm_id = self._match(features, cand, cfg.k_best_acquire)
@@ -209,7 +210,7 @@ class Localiser:
         best_support = int(support.max())
         if best_support < min_inliers:
             return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
-        view = _View(features, cKDTree(features.uv_px), R_ned_cam, alt_m, self.map.p_ned_m[cand].astype(float) @ R_ned_cam)
+        view = _View(features, cKDTree(features.uv_px), R_ned_cam, alt_m, p_cand_ned_m @ R_ned_cam)
         verdict = self._choose(corr, view, prior, seeds, support, min_inliers, margin)
         if isinstance(verdict, str):
             return NoFix(t_s, verdict, best_support, n_corr, n_feat)
@@ -339,15 +340,18 @@ class Localiser:
         nearest_px, _ = view.feature_tree.query(uv[inside], k=1, distance_upper_bound=np.nextafter(margin, np.inf))
         return float(np.mean(np.isfinite(nearest_px)))
 
-    def _match_guided(self, features: Features, cand: np.ndarray, pose: CameraPose, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
-        """Every (feature, landmark) pair whose predicted pixel is within ``radius_px`` and whose descriptors agree."""
-        uv, front = pose.project(self.camera, self.map.p_ned_m[cand].astype(float))
+    def _match_guided(self, features: Features, cand: np.ndarray, p_cand_ned_m: np.ndarray, pose: CameraPose, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """Every (feature, landmark) pair whose predicted pixel is within ``radius_px`` and whose descriptors
+        agree, of the candidates ``cand`` (M,) at ``p_cand_ned_m`` (M, 3) m."""
+        uv, front = pose.project(self.camera, p_cand_ned_m)
         keep = front & self.camera.in_image(uv, -radius_px)  # NaN pixels (behind the camera) compare False
         cand, uv = cand[keep], uv[keep]
         if len(cand) == 0:
             return np.zeros(0, int), np.zeros(0, int)
         fi, ci = pairs_within(features.uv_px, uv, radius_px)
-        ok = hamming(features.descriptors[fi], self.map.descriptors[cand[ci]]) <= self.cfg.positioning.max_hamming
+        # The candidates' descriptor rows are gathered from the map once, then paired (a few in cache, not
+        # thousands of scattered rows of a large map).
+        ok = hamming(features.descriptors[fi], self.map.descriptors[cand][ci]) <= self.cfg.positioning.max_hamming
         return fi[ok], cand[ci[ok]]
 
     def _consensus(self, corr: _Correspondences) -> tuple[np.ndarray, np.ndarray]:
