@@ -275,8 +275,8 @@ class Localiser:
 
     def _reading(self, corr: _Correspondences, view: _View, seed: int) -> _Reading:
         """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
-        dist = cdist(corr.hyp, corr.hyp[seed][None])[:, 0]  # as _consensus measured it: the same members
-        inl = self._one_per_feature(dist <= corr.tau, corr.feat_i, dist)
+        dist2 = cdist(corr.hyp, corr.hyp[seed][None], "sqeuclidean")[:, 0]  # as _consensus measures: the same members
+        inl = self._one_per_feature(dist2 <= np.square(corr.tau), corr.feat_i, dist2)
         p, cov, inl, attitude_m2 = self._refine(np.array([*corr.hyp[seed], -view.alt_m]), corr, inl, view.alt_m, 1.0 / view.features.scale)
         return _Reading(p, cov, inl, int(inl.sum()) * self._explained_share(p, view), attitude_m2)
 
@@ -357,21 +357,22 @@ class Localiser:
     def _consensus(self, corr: _Correspondences) -> tuple[np.ndarray, np.ndarray]:
         """Seed indices (S,) and their support in distinct features (S,).
 
-        Correspondence k is a member of seed s when its hypothesis is within its own ``tau`` of the seed's. The
-        (K, S) memberships are packed eight seeds to a byte as they are measured, a block of correspondences at
-        a time (the distances of a block stay in cache; the whole matrix of them would not), so that a
-        feature's vote is an OR of its rows of S / 8 bytes.
+        Correspondence k is a member of seed s when its hypothesis is within its own ``tau`` of the seed's,
+        compared squared (no square root per pair: a few times faster). The (K, S) memberships are packed eight
+        seeds to a byte as they are measured, a block of correspondences at a time (the distances of a block
+        stay in cache; the whole matrix of them would not), so that a feature's vote is an OR of its rows of
+        S / 8 bytes.
         """
         cfg = self.cfg.positioning
         hyp, tau, feat_i = corr.hyp, corr.tau, corr.feat_i
         K = len(hyp)
         # Seeds: every correspondence when few, else an even spread (deterministic).
         seeds = np.arange(K) if K <= cfg.max_seeds else np.linspace(0, K - 1, cfg.max_seeds).astype(int)
-        seed_hyp = hyp[seeds]
+        seed_hyp, tau2 = hyp[seeds], np.square(tau)
         members_packed = np.empty((K, (len(seeds) + 7) // 8), np.uint8)
         for k0 in range(0, K, _CONSENSUS_BLOCK):
             block = slice(k0, k0 + _CONSENSUS_BLOCK)
-            members_packed[block] = np.packbits(cdist(hyp[block], seed_hyp) <= tau[block, None], axis=1)
+            members_packed[block] = np.packbits(cdist(hyp[block], seed_hyp, "sqeuclidean") <= tau2[block, None], axis=1)
         # Support in distinct features: members grouped by feature, one vote per group with any member.
         order = np.argsort(feat_i, kind="stable")
         starts = np.flatnonzero(np.r_[True, feat_i[order][1:] != feat_i[order][:-1]])
@@ -380,11 +381,12 @@ class Localiser:
         return seeds, support
 
     @staticmethod
-    def _one_per_feature(member_row: np.ndarray, feat_i: np.ndarray, dist: np.ndarray) -> np.ndarray:
-        """Boolean (K,) keeping, per feature, its member correspondence closest to the hypothesis."""
+    def _one_per_feature(member_row: np.ndarray, feat_i: np.ndarray, dist2: np.ndarray) -> np.ndarray:
+        """Boolean (K,) keeping, per feature, its member correspondence closest to the hypothesis (``dist2``:
+        squared distances to it)."""
         keep = np.zeros(len(feat_i), bool)
         idx = np.flatnonzero(member_row)
-        order = idx[np.argsort(dist[idx])]
+        order = idx[np.argsort(dist2[idx])]
         _, first = np.unique(feat_i[order], return_index=True)
         keep[order[first]] = True
         return keep
