@@ -220,11 +220,14 @@ class Companion:
             # time with the IMU, interpolates between GPS1's 5 Hz readings and carries its lag.
             gps1 = self.filter.estimate_at(frame.t_s).p_ned_m if mapping else None
         # Mapping frames keep full resolution; positioning frames from closer than the map are shrunk to its scale.
-        scale = 1.0 if mapping else self.localiser.detection_scale(alt, prior)
+        # A positioning frame looks its candidate landmarks up once; a mapping frame's self-check after the
+        # mapper has changed the map looks them up again.
+        cand = None if mapping else self.localiser.candidates(alt, prior)
+        scale = 1.0 if mapping else self.localiser.detection_scale(alt, prior, cand)
         feats = self.detector.detect(frame.image_bgr, R @ self.R_body_cam, scale)
         if mapping:
             self.mapper.process(feats, NavSample(frame.t_s, gps1, alt, R))
-        res = self.localiser.locate(feats, frame.t_s, R, alt, prior)
+        res = self.localiser.locate(feats, frame.t_s, R, alt, prior, cand)
         if not isinstance(res, Fix):
             self.log.row("fixes", t_s=frame.t_s, kind="none", reason=res.reason, n=f"{res.n_inliers}", m2="", accepted="",
                          lat_deg="", lon_deg="", sigma_m="")

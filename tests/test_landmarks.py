@@ -71,3 +71,20 @@ def test_index_memory_is_counted():
 def test_bad_cell_size_is_refused():
     with pytest.raises(ValueError):
         GridIndex(cell_m=0.0)
+
+
+def test_variance_across_rays_equals_the_projected_covariance():
+    rng = np.random.default_rng(5)
+    lm = LandmarkMap()
+    rays = rng.normal(size=(50, 4, 3))
+    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
+    info = np.einsum("nk,nkij->nij", rng.uniform(100.0, 1e4, (50, 4)), np.eye(3) - rays[..., :, None] * rays[..., None, :])
+    ids = lm.add(rng.integers(0, 256, (50, 32), dtype=np.uint8), rng.normal(size=(50, 3)), info, np.ones(50))
+    cov = lm.covariance(ids)
+    d = rng.normal(size=(50, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    P = np.eye(3) - d[:, :, None] * d[:, None, :]
+    expected = np.einsum("kij,kjl,kli->k", P, cov, P) / 2.0
+    np.testing.assert_allclose(lm.variance_across_rays_m2(ids, d), expected, rtol=1e-9)
+    down = np.tile([0.0, 0.0, 1.0], (50, 1))  # straight down: the mean horizontal variance
+    np.testing.assert_allclose(lm.variance_across_rays_m2(ids, down), (cov[:, 0, 0] + cov[:, 1, 1]) / 2.0, rtol=1e-9)

@@ -8,7 +8,7 @@ from auxgps.core.camera import CameraPose
 from auxgps.core.features import Features, FeatureDetector
 from auxgps.core.geometry import R_BODY_CAM_DOWN, R_ned_body_from_euler
 from auxgps.core.landmarks import LandmarkMap
-from auxgps.core.localise import Fix, Localiser, NoFix, PositionPrior
+from auxgps.core.localise import Fix, Localiser, NoFix, PositionPrior, _Correspondences
 from auxgps.core.mapping import Mapper
 from auxgps.core.nav import NavSample
 from auxgps.errors import FrameError
@@ -18,6 +18,8 @@ from auxgps.sim.render import Renderer
 from tests.conftest import make_world
 
 atol_fix_m = 0.05  # 5 cm: noise-free views, pixel quantisation only
+atol_equal_m = 1e-9  # 1 nm: two routes to the same numbers, rounding only
+rtol_equal = 1e-9
 
 
 def synthetic_map(camera, points_ned, n_seen=20, seed=0):
@@ -108,6 +110,64 @@ def test_a_confident_but_biased_prior_does_not_outvote_the_image(camera, pipelin
     res = locate(pipeline, camera, lm, feats, np.eye(3), 15.0, prior)
     assert isinstance(res, Fix) and np.linalg.norm(res.p_ned_m[:2] - p_true[:2]) < atol_fix_m
     assert res.n_inliers == 16
+
+
+def refine_by_jacobians(loc, p0, corr, inl, alt_m):
+    """The localiser's refinement written out with a (K, 3, 6) Jacobian per correspondence, ``J_k = [-P_k,
+    t_k [d_k]x]``: the reference that its closed-form normal equations are checked against."""
+    noise, f, d, L = loc.cfg.noise, loc.camera.focal_px, corr.d, corr.L
+    lm_cov = loc.map.covariance(corr.lm_id)
+    lm_var = np.trace(lm_cov[:, :2, :2], axis1=1, axis2=2) / 2.0
+    P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    dx = np.zeros((len(d), 3, 3))
+    dx[:, 0, 1], dx[:, 0, 2], dx[:, 1, 2] = -d[:, 2], d[:, 1], -d[:, 0]
+    dx[:, 1, 0], dx[:, 2, 0], dx[:, 2, 1] = d[:, 2], -d[:, 1], d[:, 0]
+    prior_info = np.diag([0.0, 0.0, 1.0 / noise.altitude_m**2] + [1.0 / np.deg2rad(noise.attitude_deg) ** 2] * 2
+                         + [1.0 / np.deg2rad(noise.heading_deg) ** 2])
+    p, dtheta = np.asarray(p0, float), np.zeros(3)
+    for _ in range(3):
+        t = np.einsum("ki,ki->k", d, L - p)
+        w = 1.0 / ((t * noise.pixel_px / f) ** 2 + lm_var)
+        J = np.concatenate([-P, t[:, None, None] * dx], axis=2)
+        c = np.einsum("kij,kj->ki", P, L)
+        A = np.einsum("k,kji,kjl->il", w[inl], J[inl], J[inl]) + prior_info
+        b = -np.einsum("k,kji,kj->i", w[inl], J[inl], c[inl])
+        b[2] += -alt_m * prior_info[2, 2]
+        z = np.linalg.solve(A, b)
+        p, dtheta = z[:3], z[3:]
+        resid = c + np.einsum("kij,j->ki", J, z)
+        err_px = np.linalg.norm(resid, axis=1) / np.maximum(t, 1e-6) * f
+        chi2 = float(np.sum(w[inl] * np.sum(resid[inl] ** 2, axis=1)))
+        cov = np.linalg.inv(A)[:3, :3] * max(1.0, chi2 / max(2 * int(inl.sum()) - 3, 1))
+        inl = inl & (err_px <= loc.cfg.positioning.inlier_px)
+    return p, cov, inl, float(dtheta @ prior_info[3:, 3:] @ dtheta)
+
+
+def test_refinement_in_closed_form_equals_the_jacobian_form(camera, pipeline, scene):
+    """Noisy pixels, a telemetry attitude 0.3 degrees off and three features 10 px off (dropped as outliers):
+    the localiser's refinement and the per-correspondence Jacobian form agree to rounding."""
+    pts, lm, _ = scene
+    rng = np.random.default_rng(3)
+    R_true = R_ned_body_from_euler(0.08, -0.06, 0.7)
+    R_tel = R_true @ R_ned_body_from_euler(*np.deg2rad([0.3, -0.2, 0.3]))
+    uv, _ = CameraPose(np.array([1.0, -0.5, -15.0]), R_true @ R_BODY_CAM_DOWN).project(camera, pts)
+    uv += rng.normal(0.0, 0.5, uv.shape)
+    uv[:3] += [[8.0, -6.0], [-10.0, 0.0], [0.0, 10.0]]
+    lm_id = np.arange(len(pts))
+    d = camera.pixels_to_rays_cam(uv) @ (R_tel @ R_BODY_CAM_DOWN).T
+    L = pts[lm_id]
+    hyp = L[:, :2] - ((L[:, 2] + 15.0) / d[:, 2])[:, None] * d[:, :2]
+    corr = _Correspondences(np.arange(len(pts)), lm_id, L, d, hyp, np.full(len(pts), 0.1))
+    loc = Localiser(pipeline, camera, R_BODY_CAM_DOWN, lm)
+    inl = np.ones(len(pts), bool)
+    p0 = np.array([*np.median(hyp, axis=0), -15.0])
+    p, cov, inl_out, attitude_m2 = loc._refine(p0, corr, inl, 15.0)
+    p_ref, cov_ref, inl_ref, attitude_m2_ref = refine_by_jacobians(loc, p0, corr, inl, 15.0)
+    assert not inl_out[:3].any() and inl_out[3:].all()
+    np.testing.assert_array_equal(inl_out, inl_ref)
+    np.testing.assert_allclose(p, p_ref, rtol=0.0, atol=atol_equal_m)
+    np.testing.assert_allclose(cov, cov_ref, rtol=rtol_equal, atol=0.0)
+    assert attitude_m2 == pytest.approx(attitude_m2_ref, rel=rtol_equal)
 
 
 @pytest.mark.parametrize("image", [np.zeros((720, 1280, 3), np.uint8), np.full((720, 1280), 128, np.uint8)])

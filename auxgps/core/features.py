@@ -115,7 +115,7 @@ def detect(detector: cv2.ORB, image: np.ndarray, min_harris: float = 0.0, angle_
     keypoints, descriptors = detector.compute(gray, keypoints)
     if descriptors is None or not keypoints:
         return Features.empty()
-    uv = np.array([kp.pt for kp in keypoints], float)
+    uv = cv2.KeyPoint_convert(keypoints).astype(float)  # the keypoints' float32 positions, as kp.pt gives them
     octave = np.array([kp.octave for kp in keypoints], int)
     return Features(uv, descriptors, octave)
 
@@ -153,6 +153,6 @@ def pairs_within(a_px: np.ndarray, b_px: np.ndarray, radius_px: float) -> tuple[
     if len(a_px) == 0 or len(b_px) == 0:
         return np.zeros(0, int), np.zeros(0, int)
     found = cKDTree(a_px).sparse_distance_matrix(cKDTree(b_px), radius_px, output_type="ndarray")
-    i, j = found["i"].astype(int), found["j"].astype(int)
-    order = np.lexsort((j, i))
-    return i[order], j[order]
+    i, j = found["i"], found["j"]
+    order = np.argsort(i * len(b_px) + j)  # one key per pair, unique: the (i, j) order in one sort
+    return i[order].astype(np.int64), j[order].astype(np.int64)

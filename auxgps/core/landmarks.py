@@ -271,6 +271,19 @@ class LandmarkMap:
         """(M, 3, 3) position covariance, m^2."""
         return np.linalg.inv(unpack_sym(self.info_packed[ids]))
 
+    def variance_across_rays_m2(self, ids: np.ndarray, d_ned: np.ndarray) -> np.ndarray:
+        """(M,) a landmark's position variance across the unit ray ``d_ned`` (M, 3) it is seen along, per axis,
+        m^2: half the trace of ``(I - d d^T) C (I - d d^T)``, so that off nadir its height error counts as well.
+        From the cofactors of the information matrix rather than a matrix inverse per landmark (the localiser
+        asks for it at every reading)."""
+        a00, a01, a02, a11, a12, a22 = self.info_packed[ids].astype(float).T
+        c00, c11, c22 = a11 * a22 - a12 * a12, a00 * a22 - a02 * a02, a00 * a11 - a01 * a01
+        c01, c02, c12 = a02 * a12 - a01 * a22, a01 * a12 - a02 * a11, a01 * a02 - a00 * a12
+        det = a00 * c00 + a01 * c01 + a02 * c02
+        x, y, z = np.asarray(d_ned, float).T
+        along = c00 * x * x + c11 * y * y + c22 * z * z + 2.0 * (c01 * x * y + c02 * x * z + c12 * y * z)
+        return 0.5 * (c00 + c11 + c22 - along) / det
+
     def ids_in_box(self, north_range_m: tuple[float, float], east_range_m: tuple[float, float]) -> np.ndarray:
         """Sorted ids of landmarks inside a north/east box (m, bounds included), through the spatial index."""
         return self.index.query(self.p_ned_m[: self._n], north_range_m, east_range_m)

@@ -60,6 +60,15 @@ class NoFix:
 
 LocateResult = Fix | NoFix
 
+#: Correspondences whose seed memberships are measured at a time: their (block, max_seeds) distances, 600 kB at
+#: 300 seeds, stay in a core's cache.
+_CONSENSUS_BLOCK = 256
+
+
+def _cross_matrix(v: np.ndarray) -> np.ndarray:
+    """The cross-product matrix [v]x (3, 3) of ``v`` (3,): ``[v]x @ u = v x u``, and for rows ``u @ [v]x = u x v``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
 
 def _prior_m2(reading, prior: PositionPrior | None, floor_m: float) -> float:
     """Squared distance of a reading from the prior, in units of their combined horizontal sigma (0 without a
@@ -73,8 +82,9 @@ def _prior_m2(reading, prior: PositionPrior | None, floor_m: float) -> float:
 
 @dataclass(frozen=True)
 class _Correspondences:
-    """Feature-landmark pairs of one frame and what each implies: ``hyp`` (K, 2) the camera's north/east if
-    the pair is right, ``tau`` (K,) how far apart two agreeing hypotheses may be, m."""
+    """Feature-landmark pairs of one frame and what each implies: ``L`` (K, 3) the landmark, NED m; ``d`` (K, 3)
+    the feature's unit ray, NED; ``hyp`` (K, 2) the camera's north/east if the pair is right, ``tau`` (K,) how
+    far apart two agreeing hypotheses may be, m."""
 
     feat_i: np.ndarray
     lm_id: np.ndarray
@@ -83,18 +93,18 @@ class _Correspondences:
     hyp: np.ndarray
     tau: np.ndarray
 
-    def subset(self, mask: np.ndarray) -> "_Correspondences":
-        return _Correspondences(*(a[mask] for a in (self.feat_i, self.lm_id, self.L, self.d, self.hyp, self.tau)))
-
 
 @dataclass(frozen=True)
 class _View:
-    """What a frame's readings are checked against: its features, attitude, height and candidate landmarks."""
+    """What a frame's readings are checked against: its features and a k-d tree of their pixels, attitude,
+    height, and its candidate landmarks turned into camera axes once per frame, ``cand_in_cam_axes_m`` (M, 3) m,
+    ``R_cam_ned @ p_ned``: a reading at ``p`` sees them at ``cand_in_cam_axes_m - R_cam_ned @ p``."""
 
     features: Features
+    feature_tree: cKDTree
     R_ned_cam: np.ndarray
     alt_m: float
-    cand: np.ndarray
+    cand_in_cam_axes_m: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -119,9 +129,22 @@ class Localiser:
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=False)
         half_diag = np.hypot(camera.width_px, camera.height_px) / 2.0 / camera.focal_px
         self._footprint_tan = half_diag + 0.3
+        noise = cfg.noise
+        # What the refinement knows of its unknowns (position, attitude correction) beforehand: the barometer's
+        # height and the telemetry's attitude, information 1/m^2 and 1/rad^2.
+        self._refine_prior_info = np.diag(
+            [0.0, 0.0, 1.0 / noise.altitude_m**2]
+            + [1.0 / np.deg2rad(noise.attitude_deg) ** 2] * 2
+            + [1.0 / np.deg2rad(noise.heading_deg) ** 2]
+        )
 
-    def locate(self, features: Features, t_s: float, R_ned_body: np.ndarray, alt_m: float, prior: PositionPrior | None) -> LocateResult:
-        """Locate one frame. ``R_ned_body`` and ``alt_m`` come from the autopilot (attitude, barometer)."""
+    def locate(self, features: Features, t_s: float, R_ned_body: np.ndarray, alt_m: float, prior: PositionPrior | None,
+               candidate_ids: np.ndarray | None = None) -> LocateResult:
+        """Locate one frame. ``R_ned_body`` and ``alt_m`` come from the autopilot (attitude, barometer).
+
+        ``candidate_ids``: what :meth:`candidates` gives for this ``alt_m`` and ``prior`` on the map as it is,
+        when the caller has it already (it asked for the frame's :meth:`detection_scale`); else it is looked up.
+        """
         cfg = self.cfg.positioning
         n_feat = len(features)
         if n_feat < cfg.min_inliers:
@@ -129,7 +152,7 @@ class Localiser:
         if not (np.all(np.isfinite(R_ned_body)) and np.isfinite(alt_m)):
             return NoFix(t_s, "attitude or altitude is not finite", n_features=n_feat)
 
-        cand = self._candidates(alt_m, prior)
+        cand = self.candidates(alt_m, prior) if candidate_ids is None else candidate_ids
         if len(cand) < cfg.min_inliers:
             return NoFix(t_s, f"{len(cand)} mapped landmarks near the predicted position", n_features=n_feat)
 
@@ -148,9 +171,10 @@ class Localiser:
         # a long stretch without fixes): candidates come from descriptors alone, and the evidence must be
         # stronger.
         tracking = prior is not None and 3.0 * prior.sigma_h_m <= cfg.max_tracking_search_m
+        p_cand_ned_m = self.map.p_ned_m[cand].astype(float)  # (M, 3) m: for the guided match and the readings
         if tracking:
             pose = CameraPose(np.array([prior.p_ned_m[0], prior.p_ned_m[1], -alt_m]), R_ned_cam)
-            feat_i, lm_id = self._match_guided(features, cand, pose, radius_px)
+            feat_i, lm_id = self._match_guided(features, cand, p_cand_ned_m, pose, radius_px)
             min_inliers, margin = cfg.min_inliers, cfg.ambiguity_margin
         else:
             feat_i, lm_id = self._match(features, cand, cfg.k_best_acquire)
@@ -182,12 +206,12 @@ class Localiser:
         tau = inlier_px / self.camera.focal_px * range_m + 2.0 * self.cfg.noise.altitude_m * tan_off
 
         corr = _Correspondences(feat_i, lm_id, L, d, hyp, tau)
-        view = _View(features, R_ned_cam, alt_m, cand)
-        seeds, support, members = self._consensus(corr, n_feat)
+        seeds, support = self._consensus(corr)
         best_support = int(support.max())
         if best_support < min_inliers:
             return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
-        verdict = self._choose(corr, view, prior, seeds, support, members, min_inliers, margin)
+        view = _View(features, cKDTree(features.uv_px), R_ned_cam, alt_m, p_cand_ned_m @ R_ned_cam)
+        verdict = self._choose(corr, view, prior, seeds, support, min_inliers, margin)
         if isinstance(verdict, str):
             return NoFix(t_s, verdict, best_support, n_corr, n_feat)
         p, cov, inl = verdict.p, verdict.cov, verdict.inl
@@ -199,7 +223,7 @@ class Localiser:
 
     # -- steps -------------------------------------------------------------------------------------------------
 
-    def _choose(self, corr: _Correspondences, view: _View, prior, seeds, support, members, min_inliers: int, margin: float):
+    def _choose(self, corr: _Correspondences, view: _View, prior, seeds, support, min_inliers: int, margin: float):
         """The most probable reading of the frame, or a reason (str) why the frame is ambiguous.
 
         The best-supported hypotheses that are distinct (more than their agreement radius apart) are refined
@@ -217,17 +241,24 @@ class Localiser:
         lls: list[float] = []
         seed_hyp, seed_tau = corr.hyp[seeds], corr.tau[seeds]
         covered = np.zeros(len(seeds), bool)  # a hypothesis of a reading already taken
-        for s in np.argsort(-support, kind="stable"):
-            if support[s] < floor or len(readings) >= cfg.max_readings:
+        by_support = np.argsort(-support, kind="stable")
+        next_at = 0
+        while len(readings) < cfg.max_readings:
+            # The next seed in falling support that no reading has covered, found in one step: a reading covers
+            # most of the seeds, and a loop over them costs more than the test.
+            uncovered = np.flatnonzero(~covered[by_support[next_at:]])
+            if len(uncovered) == 0:
+                break
+            s = by_support[next_at + uncovered[0]]
+            next_at += int(uncovered[0]) + 1
+            if support[s] < floor:
                 break
             # A reading's log-likelihood is at most its support (inliers <= support, explained share <= 1), and
             # seeds come in falling support: once one cannot come within the margin of the best, none can.
             if lls and support[s] < max(lls) - margin:
                 break
-            if covered[s]:
-                continue
             covered |= np.linalg.norm(seed_hyp - seed_hyp[s], axis=1) <= seed_tau
-            r = self._reading(corr, view, members[s], seeds[s])
+            r = self._reading(corr, view, seeds[s])
             if int(r.inl.sum()) >= min_inliers and np.all(np.isfinite(r.p)):
                 readings.append(r)
                 lls.append(r.score - 0.5 * r.attitude_m2 - 0.5 * _prior_m2(r, prior, cfg.prior_floor_m))
@@ -242,20 +273,23 @@ class Localiser:
                 return f"ambiguous: a reading {np.linalg.norm(readings[k].p[:2] - best.p[:2]):.2f} m away is within {ll[order[0]] - ll[k]:.1f} of the best"
         return best
 
-    def _reading(self, corr: _Correspondences, view: _View, member_row: np.ndarray, seed: int) -> _Reading:
+    def _reading(self, corr: _Correspondences, view: _View, seed: int) -> _Reading:
         """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
-        inl = self._one_per_feature(member_row, corr.feat_i, np.linalg.norm(corr.hyp - corr.hyp[seed], axis=1))
+        dist2 = cdist(corr.hyp, corr.hyp[seed][None], "sqeuclidean")[:, 0]  # as _consensus measures: the same members
+        inl = self._one_per_feature(dist2 <= np.square(corr.tau), corr.feat_i, dist2)
         p, cov, inl, attitude_m2 = self._refine(np.array([*corr.hyp[seed], -view.alt_m]), corr, inl, view.alt_m, 1.0 / view.features.scale)
-        return _Reading(p, cov, inl, int(inl.sum()) * self._explained_share(p, view.R_ned_cam, view.cand, view.features), attitude_m2)
+        return _Reading(p, cov, inl, int(inl.sum()) * self._explained_share(p, view), attitude_m2)
 
-    def detection_scale(self, alt_m: float, prior: PositionPrior | None) -> float:
+    def detection_scale(self, alt_m: float, prior: PositionPrior | None, candidate_ids: np.ndarray | None = None) -> float:
         """The image scale (at most 1) at which to detect a frame so that its descriptors see the landmarks in
         view at about the range the map's descriptors saw them from: a frame from half the mapping range is
         detected at half size. 1 without a prior, without landmarks near it with a known range, or when the
-        frame is not much closer than the map's views (the detector's own pyramid covers ``scale_factor``)."""
+        frame is not much closer than the map's views (the detector's own pyramid covers ``scale_factor``).
+        ``candidate_ids``: :meth:`candidates` for this ``alt_m`` and ``prior``, when the caller has them (to pass
+        on to :meth:`locate`, so that a frame looks them up once)."""
         if prior is None or not np.isfinite(alt_m):
             return 1.0
-        cand = self._candidates(alt_m, prior)
+        cand = self.candidates(alt_m, prior) if candidate_ids is None else candidate_ids
         range_map_m = self.map.descriptor_range_m[cand].astype(float)
         known = np.isfinite(range_map_m) & (range_map_m > 0)
         if not np.any(known):
@@ -267,8 +301,8 @@ class Localiser:
             return 1.0
         return float(np.clip(scale, self.cfg.positioning.min_detection_scale, 1.0))
 
-    def _candidates(self, alt_m: float, prior: PositionPrior | None) -> np.ndarray:
-        """Usable landmarks within reach of the prior's footprint (all usable ones without a prior)."""
+    def candidates(self, alt_m: float, prior: PositionPrior | None) -> np.ndarray:
+        """Ids of the usable landmarks within reach of the prior's footprint (all usable ones without a prior)."""
         cfg = self.cfg.positioning
         m = self.cfg.mapping
         if prior is None:
@@ -294,47 +328,65 @@ class Localiser:
                 ci.append(m.trainIdx)
         return np.array(fi, int), cand[np.array(ci, int)] if ci else np.zeros(0, int)
 
-    def _explained_share(self, p: np.ndarray, R_ned_cam: np.ndarray, cand: np.ndarray, features: Features) -> float:
-        """Share of the mapped landmarks that ``p`` puts well inside the image which have a feature nearby."""
-        uv, front = CameraPose(p, R_ned_cam).project(self.camera, self.map.p_ned_m[cand].astype(float))
-        margin = 2.0 * self.cfg.positioning.inlier_px / features.scale
-        inside = front & self.camera.in_image(np.nan_to_num(uv, nan=-1e6), margin)
+    def _explained_share(self, p: np.ndarray, view: _View) -> float:
+        """Share of the candidate landmarks that a camera at ``p`` puts well inside the image which have a feature
+        nearby."""
+        uv, front = self.camera.project_cam(view.cand_in_cam_axes_m - view.R_ned_cam.T @ p)
+        margin = 2.0 * self.cfg.positioning.inlier_px / view.features.scale
+        inside = front & self.camera.in_image(uv, margin)  # NaN pixels (behind the camera) compare False
         if not np.any(inside):
             return 0.0
-        near = cKDTree(features.uv_px).query_ball_point(uv[inside], margin, return_length=True) if len(features) else 0
-        return float(np.mean(near > 0))
+        # The nearest feature within the margin (bound included, as the tree's bound is exclusive), or none (inf).
+        nearest_px, _ = view.feature_tree.query(uv[inside], k=1, distance_upper_bound=np.nextafter(margin, np.inf))
+        return float(np.mean(np.isfinite(nearest_px)))
 
-    def _match_guided(self, features: Features, cand: np.ndarray, pose: CameraPose, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
-        """Every (feature, landmark) pair whose predicted pixel is within ``radius_px`` and whose descriptors agree."""
-        uv, front = pose.project(self.camera, self.map.p_ned_m[cand].astype(float))
-        keep = front & self.camera.in_image(np.nan_to_num(uv, nan=-1e6), -radius_px)
+    def _match_guided(self, features: Features, cand: np.ndarray, p_cand_ned_m: np.ndarray, pose: CameraPose, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """Every (feature, landmark) pair whose predicted pixel is within ``radius_px`` and whose descriptors
+        agree, of the candidates ``cand`` (M,) at ``p_cand_ned_m`` (M, 3) m."""
+        uv, front = pose.project(self.camera, p_cand_ned_m)
+        keep = front & self.camera.in_image(uv, -radius_px)  # NaN pixels (behind the camera) compare False
         cand, uv = cand[keep], uv[keep]
         if len(cand) == 0:
             return np.zeros(0, int), np.zeros(0, int)
         fi, ci = pairs_within(features.uv_px, uv, radius_px)
-        ok = hamming(features.descriptors[fi], self.map.descriptors[cand[ci]]) <= self.cfg.positioning.max_hamming
+        # The candidates' descriptor rows are gathered from the map once, then paired (a few in cache, not
+        # thousands of scattered rows of a large map).
+        ok = hamming(features.descriptors[fi], self.map.descriptors[cand][ci]) <= self.cfg.positioning.max_hamming
         return fi[ok], cand[ci[ok]]
 
-    def _consensus(self, corr: _Correspondences, n_feat: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Seed indices (S,), their support in distinct features (S,), and the (S, K) membership matrix."""
+    def _consensus(self, corr: _Correspondences) -> tuple[np.ndarray, np.ndarray]:
+        """Seed indices (S,) and their support in distinct features (S,).
+
+        Correspondence k is a member of seed s when its hypothesis is within its own ``tau`` of the seed's,
+        compared squared (no square root per pair: a few times faster). The (K, S) memberships are packed eight
+        seeds to a byte as they are measured, a block of correspondences at a time (the distances of a block
+        stay in cache; the whole matrix of them would not), so that a feature's vote is an OR of its rows of
+        S / 8 bytes.
+        """
         cfg = self.cfg.positioning
         hyp, tau, feat_i = corr.hyp, corr.tau, corr.feat_i
         K = len(hyp)
         # Seeds: every correspondence when few, else an even spread (deterministic).
         seeds = np.arange(K) if K <= cfg.max_seeds else np.linspace(0, K - 1, cfg.max_seeds).astype(int)
-        members = cdist(hyp[seeds], hyp) <= tau[None, :]  # (S, K); cdist: one pass, the same numbers as a norm
+        seed_hyp, tau2 = hyp[seeds], np.square(tau)
+        members_packed = np.empty((K, (len(seeds) + 7) // 8), np.uint8)
+        for k0 in range(0, K, _CONSENSUS_BLOCK):
+            block = slice(k0, k0 + _CONSENSUS_BLOCK)
+            members_packed[block] = np.packbits(cdist(hyp[block], seed_hyp, "sqeuclidean") <= tau2[block, None], axis=1)
         # Support in distinct features: members grouped by feature, one vote per group with any member.
         order = np.argsort(feat_i, kind="stable")
         starts = np.flatnonzero(np.r_[True, feat_i[order][1:] != feat_i[order][:-1]])
-        support = np.logical_or.reduceat(members[:, order], starts, axis=1).sum(axis=1)
-        return seeds, support, members
+        votes = np.bitwise_or.reduceat(members_packed[order], starts, axis=0)  # (features, S / 8)
+        support = np.unpackbits(votes, axis=1, count=len(seeds)).sum(axis=0)
+        return seeds, support
 
     @staticmethod
-    def _one_per_feature(member_row: np.ndarray, feat_i: np.ndarray, dist: np.ndarray) -> np.ndarray:
-        """Boolean (K,) keeping, per feature, its member correspondence closest to the hypothesis."""
+    def _one_per_feature(member_row: np.ndarray, feat_i: np.ndarray, dist2: np.ndarray) -> np.ndarray:
+        """Boolean (K,) keeping, per feature, its member correspondence closest to the hypothesis (``dist2``:
+        squared distances to it)."""
         keep = np.zeros(len(feat_i), bool)
         idx = np.flatnonzero(member_row)
-        order = idx[np.argsort(dist[idx])]
+        order = idx[np.argsort(dist2[idx])]
         _, first = np.unique(feat_i[order], return_index=True)
         keep[order[first]] = True
         return keep
@@ -348,50 +400,58 @@ class Localiser:
         cannot tell a tilt from a shift (one small object), the attitude prior decides and its uncertainty
         lands in the position covariance; where it can (objects spread over the view), both get better.
         Inliers are re-selected by reprojection error. ``pixel_size``: full-resolution px per detection px.
+
+        The normal equations are formed from weighted sums over the correspondences' (K, 3) rows, not from
+        (K, 3, 6) Jacobians: with unit rays the projector ``P = I - d d^T`` and ``[d]x`` make every block of
+        ``J^T J`` out of ``d d^T`` and ``[d]x`` alone (the same numbers to rounding, a few times faster).
         """
-        idx = np.flatnonzero(inl)
-        if len(idx) < len(inl):  # only inliers can stay inliers: solve on them alone (the same numbers, less work)
-            p, cov, inl_sub, attitude_m2 = self._refine(p0, corr.subset(idx), np.ones(len(idx), bool), alt_m, pixel_size)
-            inl = np.zeros(len(inl), bool)
-            inl[idx] = inl_sub
-            return p, cov, inl, attitude_m2
         cfg = self.cfg.positioning
         noise = self.cfg.noise
         f = self.camera.focal_px
-        L, d = corr.L, corr.d
-        lm_cov = self.map.covariance(corr.lm_id)
-        P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+        # Only inliers can stay inliers: solve on them alone; ``kept`` marks which of them still are.
+        idx = np.flatnonzero(inl)
+        L, d = corr.L[idx], corr.d[idx]
         # A landmark's uncertainty across its ray (per axis): off nadir, its height error counts as well.
-        lm_var = np.einsum("kij,kji->k", lm_cov, P) / 2.0
-        dx = np.zeros((len(d), 3, 3))  # cross-product matrices [d]x
-        dx[:, 0, 1], dx[:, 0, 2], dx[:, 1, 2] = -d[:, 2], d[:, 1], -d[:, 0]
-        dx[:, 1, 0], dx[:, 2, 0], dx[:, 2, 1] = d[:, 2], -d[:, 1], d[:, 0]
-        prior_info = np.diag(
-            [0.0, 0.0, 1.0 / noise.altitude_m**2]
-            + [1.0 / np.deg2rad(noise.attitude_deg) ** 2] * 2
-            + [1.0 / np.deg2rad(noise.heading_deg) ** 2]
-        )
+        lm_var = self.map.variance_across_rays_m2(corr.lm_id[idx], d)
+        kept = np.ones(len(idx), bool)
+        d_dot_L = np.einsum("ki,ki->k", d, L)
+        PL = L - d_dot_L[:, None] * d  # P_k L_k, P_k = I - d_k d_k^T
+        d_cross_L = d[:, [1, 2, 0]] * L[:, [2, 0, 1]] - d[:, [2, 0, 1]] * L[:, [1, 2, 0]]  # d_k x L_k
+        prior_info = self._refine_prior_info
+        eye3 = np.eye(3)
         p = np.asarray(p0, float)
         dtheta = np.zeros(3)
         cov = np.full((3, 3), np.nan)
         for _ in range(3):
-            if inl.sum() < 2:
+            n_inl = int(kept.sum())
+            if n_inl < 2:
                 break
-            t = np.einsum("ki,ki->k", d, L - p)  # range along each ray, m
-            w = 1.0 / ((t * noise.pixel_px * pixel_size / f) ** 2 + lm_var)
-            # Residual r_k = P_k (L_k - p) + t_k [d_k]x dtheta = c_k + J_k z, z = (p, dtheta), linear in z.
-            J = np.concatenate([-P, t[:, None, None] * dx], axis=2)  # (K, 3, 6)
-            c = np.einsum("kij,kj->ki", P, L)
-            A = np.einsum("k,kji,kjl->il", w[inl], J[inl], J[inl]) + prior_info
-            b = -np.einsum("k,kji,kj->i", w[inl], J[inl], c[inl])
+            t = d_dot_L - d @ p  # range along each ray, m
+            w = np.where(kept, 1.0 / ((t * noise.pixel_px * pixel_size / f) ** 2 + lm_var), 0.0)  # 0 off the inliers
+            # Residual r_k = P_k (L_k - p) + t_k [d_k]x dtheta = c_k + J_k z, z = (p, dtheta), J_k = [-P_k, t_k [d_k]x].
+            # With unit rays P_k^T P_k = P_k, P_k [d_k]x = [d_k]x and [d_k]x^T [d_k]x = P_k, so
+            # sum w J^T J = [[sum w P, -[sum w t d]x], [[sum w t d]x, sum w t^2 P]] and
+            # -sum w J^T c = (sum w P L, sum w t d x L): weighted sums of d d^T and of (K, 3) rows.
+            wt = w * t
+            wtt = wt * t
+            A = prior_info.copy()
+            A[:3, :3] += w.sum() * eye3 - (d * w[:, None]).T @ d
+            A[3:, 3:] += wtt.sum() * eye3 - (d * wtt[:, None]).T @ d
+            wtd_x = _cross_matrix(wt @ d)
+            A[:3, 3:] -= wtd_x
+            A[3:, :3] += wtd_x
+            b = np.concatenate([w @ PL, wt @ d_cross_L])
             b[2] += -alt_m * prior_info[2, 2]
             z = np.linalg.solve(A, b)
             p, dtheta = z[:3], z[3:]
-            resid = c + np.einsum("kij,j->ki", J, z)  # offset of each landmark from its corrected ray, m
+            # Offset of each landmark from its corrected ray, m: P (L - p) + t d x dtheta.
+            resid = PL - p + (d @ p)[:, None] * d + t[:, None] * (d @ _cross_matrix(dtheta))
             err_px = np.linalg.norm(resid, axis=1) / np.maximum(t, 1e-6) * f
-            chi2 = float(np.sum(w[inl] * np.sum(resid[inl] ** 2, axis=1)))
-            dof = max(2 * int(inl.sum()) - 3, 1)
+            chi2 = float(w @ np.einsum("ki,ki->k", resid, resid))
+            dof = max(2 * n_inl - 3, 1)
             cov = np.linalg.inv(A)[:3, :3] * max(1.0, chi2 / dof)
-            inl = inl & (err_px <= cfg.inlier_px * pixel_size)
+            kept &= err_px <= cfg.inlier_px * pixel_size
         attitude_m2 = float(dtheta @ prior_info[3:, 3:] @ dtheta)
+        inl = np.zeros(len(inl), bool)
+        inl[idx] = kept
         return p, cov, inl, attitude_m2

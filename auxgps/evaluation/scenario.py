@@ -171,8 +171,9 @@ def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: Pipeli
                 image = np.zeros_like(image)  # the camera is blinded
             t0 = time.perf_counter()
             prior = nav.prior(t)
-            feats = su.detector.detect(image, tel.R_ned_body @ su.R_body_cam, su.localiser.detection_scale(tel.alt_m, prior))
-            res = su.localiser.locate(feats, t, tel.R_ned_body, tel.alt_m, prior)
+            cand = su.localiser.candidates(tel.alt_m, prior)
+            feats = su.detector.detect(image, tel.R_ned_body @ su.R_body_cam, su.localiser.detection_scale(tel.alt_m, prior, cand))
+            res = su.localiser.locate(feats, t, tel.R_ned_body, tel.alt_m, prior, cand)
             pos_ms.append((time.perf_counter() - t0) * 1e3)
             n_feat.append(len(feats))
             eligible = _cube_fully_in_view(world, su.camera, frame.pose) and image is frame.image_bgr
