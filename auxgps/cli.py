@@ -112,7 +112,10 @@ def _run(args) -> int:
     def stop(signum, frame):  # SIGTERM ends the flight like Ctrl-C: logs closed, map saved
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, stop)
+    # SIGINT explicitly too: started in the background by a non-interactive shell, a process inherits SIGINT
+    # ignored, and Ctrl-C or a supervisor's interrupt would then not end the flight.
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, stop)
     opts = RunOptions(
         connect=args.connect,
         camera=args.camera,

@@ -1286,7 +1286,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s vehicle_emulator %(levelname)s %(message)s")
-    signal.signal(signal.SIGTERM, _raise_interrupt)
+    # SIGINT too: a process started in the background by a non-interactive shell inherits SIGINT ignored, and
+    # Python then installs no KeyboardInterrupt for it.
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, _raise_interrupt)
     try:
         if not 1024 <= args.port <= 65535:
             raise EmulatorError(f"--port {args.port}: give 1024 to 65535")
