@@ -56,7 +56,9 @@ def test_short_flight_lands_home_on_gps2(tmp_path):
     assert log["exit_reason"] == "landed"
     assert log["switch_to_gps2_t_s"] - log["failure_t_s"] <= 1.0
     stats = log["gps_input"]
-    assert stats["mean_interval_ms"] <= 215 and stats["consecutive_gaps_over_245ms"] == 0
+    # ArduPilot's health rule (AP_GPS): mean interval at most 215 ms and never two late (over 245 ms) in a row.
+    # One late message is within the rule; a loaded CI machine once stalled the timer 350 ms.
+    assert stats["mean_interval_ms"] <= 215 and stats["consecutive_gaps_over_245ms"] < 2
     # A regression guard for the loop, not the acceptance figure (that is `auxgps demo`'s, on the full survey):
     # under CPU load from other processes the landing error of this short flight was seen at 1.6 m.
     assert log["landing_error_m"] <= 2.0
@@ -92,7 +94,7 @@ def test_run_reconnects_after_the_autopilot_restarts_and_ignores_noise(tmp_path)
     two = json.loads((tmp_path / "second.json").read_text())
     assert len(one["gps_input_arrivals_t_s"]) > 50
     assert len(two["gps_input_arrivals_t_s"]) > 50  # reconnected and sending again
-    assert two["gps_input"]["consecutive_gaps_over_245ms"] == 0
+    assert two["gps_input"]["consecutive_gaps_over_245ms"] < 2  # ArduPilot's health rule, as above
 
 
 def test_link_ignores_garbage_and_other_systems():
