@@ -5,6 +5,7 @@ import pytest
 
 from auxgps.core.camera import CameraPose, PinholeCamera
 from auxgps.core.geometry import (
+    cross_matrix,
     R_BODY_CAM_DOWN,
     LocalFrame,
     R_body_cam_from_mount,
@@ -97,3 +98,10 @@ def test_local_frame_round_trip_through_pymap3d():
     back = frame.to_ned(lat_deg=lat, lon_deg=lon, alt_amsl_m=alt)
     assert np.allclose(back, p, atol=1e-6)  # 1 micrometre
     assert lat[0] > frame.lat_deg and lon[0] < frame.lon_deg and alt[0] == pytest.approx(503.0, abs=1e-3)
+
+
+def test_cross_matrix_is_the_cross_product_one_or_many():
+    rng = np.random.default_rng(2)
+    v, u = rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
+    np.testing.assert_allclose(np.einsum("kij,kj->ki", cross_matrix(v), u), np.cross(v, u), atol=1e-12)
+    np.testing.assert_allclose(cross_matrix(v[0]) @ u[0], np.cross(v[0], u[0]), atol=1e-12)

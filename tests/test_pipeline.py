@@ -6,7 +6,7 @@ import pytest
 from auxgps.config import PipelineConfig, parse_as
 from auxgps.core.camera import CameraPose
 from auxgps.core.features import Features, FeatureDetector
-from auxgps.core.geometry import R_BODY_CAM_DOWN, R_ned_body_from_euler
+from auxgps.core.geometry import R_BODY_CAM_DOWN, R_ned_body_from_euler, cross_matrix
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.localise import Fix, Localiser, NoFix, PositionPrior, _Correspondences
 from auxgps.core.mapping import Mapper
@@ -116,12 +116,9 @@ def refine_by_jacobians(loc, p0, corr, inl, alt_m):
     """The localiser's refinement written out with a (K, 3, 6) Jacobian per correspondence, ``J_k = [-P_k,
     t_k [d_k]x]``: the reference that its closed-form normal equations are checked against."""
     noise, f, d, L = loc.cfg.noise, loc.camera.focal_px, corr.d, corr.L
-    lm_cov = loc.map.covariance(corr.lm_id)
-    lm_var = np.trace(lm_cov[:, :2, :2], axis1=1, axis2=2) / 2.0
     P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-    dx = np.zeros((len(d), 3, 3))
-    dx[:, 0, 1], dx[:, 0, 2], dx[:, 1, 2] = -d[:, 2], d[:, 1], -d[:, 0]
-    dx[:, 1, 0], dx[:, 2, 0], dx[:, 2, 1] = d[:, 2], -d[:, 1], d[:, 0]
+    lm_var = np.einsum("kij,kjl,kli->k", P, loc.map.covariance(corr.lm_id), P) / 2.0  # across the ray, per axis
+    dx = cross_matrix(d)
     prior_info = np.diag([0.0, 0.0, 1.0 / noise.altitude_m**2] + [1.0 / np.deg2rad(noise.attitude_deg) ** 2] * 2
                          + [1.0 / np.deg2rad(noise.heading_deg) ** 2])
     p, dtheta = np.asarray(p0, float), np.zeros(3)

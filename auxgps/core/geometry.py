@@ -20,6 +20,15 @@ import pymap3d
 R_BODY_CAM_DOWN = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
 
+def cross_matrix(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices ``[v]x`` (..., 3, 3) of vectors ``v`` (..., 3): ``[v]x @ u = v x u``."""
+    v = np.asarray(v, float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return S
+
+
 def R_ned_body_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
     """Rotation body -> NED from aerospace ZYX Euler angles (rad). Returns (3, 3) float64."""
     cr, sr = np.cos(roll_rad), np.sin(roll_rad)

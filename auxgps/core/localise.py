@@ -19,6 +19,7 @@ from scipy.spatial.distance import cdist
 
 from auxgps.core.camera import CameraPose, PinholeCamera
 from auxgps.core.features import Features, hamming, pairs_within
+from auxgps.core.geometry import cross_matrix
 from auxgps.core.landmarks import LandmarkMap
 
 
@@ -63,11 +64,6 @@ LocateResult = Fix | NoFix
 #: Correspondences whose seed memberships are measured at a time: their (block, max_seeds) distances, 600 kB at
 #: 300 seeds, stay in a core's cache.
 _CONSENSUS_BLOCK = 256
-
-
-def _cross_matrix(v: np.ndarray) -> np.ndarray:
-    """The cross-product matrix [v]x (3, 3) of ``v`` (3,): ``[v]x @ u = v x u``, and for rows ``u @ [v]x = u x v``."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def _prior_m2(reading, prior: PositionPrior | None, floor_m: float) -> float:
@@ -416,7 +412,7 @@ class Localiser:
         kept = np.ones(len(idx), bool)
         d_dot_L = np.einsum("ki,ki->k", d, L)
         PL = L - d_dot_L[:, None] * d  # P_k L_k, P_k = I - d_k d_k^T
-        d_cross_L = d[:, [1, 2, 0]] * L[:, [2, 0, 1]] - d[:, [2, 0, 1]] * L[:, [1, 2, 0]]  # d_k x L_k
+        d_cross_L = np.cross(d, L)  # d_k x L_k
         prior_info = self._refine_prior_info
         eye3 = np.eye(3)
         p = np.asarray(p0, float)
@@ -437,7 +433,7 @@ class Localiser:
             A = prior_info.copy()
             A[:3, :3] += w.sum() * eye3 - (d * w[:, None]).T @ d
             A[3:, 3:] += wtt.sum() * eye3 - (d * wtt[:, None]).T @ d
-            wtd_x = _cross_matrix(wt @ d)
+            wtd_x = cross_matrix(wt @ d)
             A[:3, 3:] -= wtd_x
             A[3:, :3] += wtd_x
             b = np.concatenate([w @ PL, wt @ d_cross_L])
@@ -445,7 +441,7 @@ class Localiser:
             z = np.linalg.solve(A, b)
             p, dtheta = z[:3], z[3:]
             # Offset of each landmark from its corrected ray, m: P (L - p) + t d x dtheta.
-            resid = PL - p + (d @ p)[:, None] * d + t[:, None] * (d @ _cross_matrix(dtheta))
+            resid = PL - p + (d @ p)[:, None] * d + t[:, None] * np.cross(d, dtheta)
             err_px = np.linalg.norm(resid, axis=1) / np.maximum(t, 1e-6) * f
             chi2 = float(w @ np.einsum("ki,ki->k", resid, resid))
             dof = max(2 * n_inl - 3, 1)

@@ -35,6 +35,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial.transform import Rotation
 
 from auxgps.core.camera import PinholeCamera
+from auxgps.core.geometry import cross_matrix
 from auxgps.errors import PhotoMapError
 
 SIFT_BYTES = 128
@@ -435,14 +436,6 @@ def _project_obs(model, cam_params, intr, X, photo, pt_idx) -> np.ndarray:
     return _Intrinsics.project(p_cam, f, model.cx[ci], model.cy[ci], intr[ci, 1], intr[ci, 2])
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(N, 3) -> (N, 3, 3) cross-product matrices."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return S
-
-
 def _obs_jacobians(model, cam_params, intr, X, photo, pt_idx):
     """Predicted pixels (K, 2) and their Jacobians: (K, 2, 9) by the photo's rotation increment, centre and
     camera's (log f, k1, k2); (K, 2, 3) by the point."""
@@ -470,7 +463,7 @@ def _obs_jacobians(model, cam_params, intr, X, photo, pt_idx):
     J_xy_p[:, 1, 2] = -y / z
     J_p = J_uv_xy @ J_xy_p
     J_cam = np.empty((len(p), 2, 9))
-    J_cam[:, :, 0:3] = J_p @ _skew(p)  # R = R_cur exp(w): p = exp(-w) R_cur^T (X - C) ~ p + p x w
+    J_cam[:, :, 0:3] = J_p @ cross_matrix(p)  # R = R_cur exp(w): p = exp(-w) R_cur^T (X - C) ~ p + p x w
     J_cam[:, :, 3:6] = -J_p @ Rt
     J_cam[:, 0, 6], J_cam[:, 1, 6] = f * d * x, f * d * y
     J_cam[:, 0, 7], J_cam[:, 1, 7] = f * x * r2, f * y * r2
