@@ -112,6 +112,42 @@ def test_a_confident_but_biased_prior_does_not_outvote_the_image(camera, pipelin
     assert res.n_inliers == 16
 
 
+def test_a_small_cube_read_off_by_its_height_loses_on_its_fit(camera, pipeline):
+    """A 1 m cube 4 m off nadir from 10 m: two top corners and the bottom corners below them, each found twice
+    (two pyramid levels), and bottom landmarks that look like the top ones. Taking the top corners for the bottom
+    ones gives a second reading 0.32 m away with as many inliers, 2 to 3 px off where the true one is within a
+    pixel. The filter's prior has drifted 0.2 m towards it: the better fit must still decide, not the prior."""
+    top = np.array([[n, e, -1.0] for n in (-0.5, 0.5) for e in (-0.5, 0.5)])
+    corners = np.vstack([top, top + [0.0, 0.0, 1.0]])
+    lm, _ = synthetic_map(camera, corners)
+    lm.descriptors[4:8] = lm.descriptors[:4]
+    p_true = np.array([-1.0, -4.0, -10.0])
+    seen = [0, 1, 4, 5]
+    uv, _ = CameraPose(p_true, R_BODY_CAM_DOWN).project(camera, corners[seen])
+    uv += np.random.default_rng(1).normal(0.0, 0.3, uv.shape)
+    feats = Features(np.vstack([uv, uv + 0.2]), np.vstack([lm.descriptors[seen]] * 2), np.repeat([0, 1], len(seen)))
+    prior = PositionPrior(p_true + [0.0, 0.2, 0.0], 0.12)
+    res = locate(pipeline, camera, lm, feats, np.eye(3), 10.0, prior)
+    assert isinstance(res, Fix), res.reason
+    assert np.linalg.norm(res.p_ned_m[:2] - p_true[:2]) < atol_fix_m
+    assert res.n_inliers == 8
+
+
+def test_no_fix_when_the_most_probable_reading_has_too_few_inliers(camera, pipeline):
+    """Three corners of one object seen where the filter expects them, and four of another seen as from 0.5 m
+    away (a reading that takes some features for the wrong landmarks): the better explanation has too few
+    inliers to be a fix, and the one with enough must not become a fix in its place."""
+    cube = np.array([[n, e, d] for n in (-0.5, 0.5) for e in (-0.5, 0.5) for d in (0.0, -1.0)])
+    other = np.array([[n, e, 0.0] for n in (-0.5, 0.5) for e in (2.5, 3.5)])
+    lm, _ = synthetic_map(camera, np.vstack([cube, other]))
+    p_true = np.array([0.0, -1.0, -15.0])
+    uv_cube, _ = CameraPose(p_true, R_BODY_CAM_DOWN).project(camera, cube[:3])
+    uv_other, _ = CameraPose(p_true + [0.0, 0.5, 0.0], R_BODY_CAM_DOWN).project(camera, other)
+    feats = Features(np.vstack([uv_cube, uv_other]), lm.descriptors[[0, 1, 2, 8, 9, 10, 11]].copy(), np.zeros(7, int))
+    res = locate(pipeline, camera, lm, feats, np.eye(3), 15.0, PositionPrior(p_true, 0.12))
+    assert isinstance(res, NoFix) and "fewer than" in res.reason
+
+
 def refine_by_jacobians(loc, p0, corr, inl, alt_m):
     """The localiser's refinement written out with a (K, 3, 6) Jacobian per correspondence, ``J_k = [-P_k,
     t_k [d_k]x]``: the reference that its closed-form normal equations are checked against."""
@@ -158,7 +194,8 @@ def test_refinement_in_closed_form_equals_the_jacobian_form(camera, pipeline, sc
     loc = Localiser(pipeline, camera, R_BODY_CAM_DOWN, lm)
     inl = np.ones(len(pts), bool)
     p0 = np.array([*np.median(hyp, axis=0), -15.0])
-    p, cov, inl_out, attitude_m2 = loc._refine(p0, corr, inl, 15.0)
+    fit = loc._refine(p0, corr, inl, 15.0)
+    p, cov, inl_out, attitude_m2 = fit.p, fit.cov, fit.inl, fit.attitude_m2
     p_ref, cov_ref, inl_ref, attitude_m2_ref = refine_by_jacobians(loc, p0, corr, inl, 15.0)
     assert not inl_out[:3].any() and inl_out[3:].all()
     np.testing.assert_array_equal(inl_out, inl_ref)

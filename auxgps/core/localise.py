@@ -104,13 +104,28 @@ class _View:
 
 
 @dataclass(frozen=True)
+class _Fit:
+    """What the refinement makes of a hypothesis: position ``p`` (3,) and covariance ``cov`` (3, 3), NED m; the
+    inliers it kept ``inl`` (K,); ``attitude_m2``, the squared Mahalanobis distance of its attitude correction
+    from the telemetry's; and ``fit_quality``, its inliers each weighed by how well it fits (MSAC: ``1 -
+    (error / inlier_px)^2``, so a corner on its prediction counts 1, one at the tolerance 0)."""
+
+    p: np.ndarray
+    cov: np.ndarray
+    inl: np.ndarray
+    attitude_m2: float
+    fit_quality: float
+
+
+@dataclass(frozen=True)
 class _Reading:
     """One candidate position of a frame: refined position, covariance, inlier mask, score."""
 
     p: np.ndarray
     cov: np.ndarray
     inl: np.ndarray
-    score: float
+    score: float  # its fit quality times ``explained``
+    explained: float  # the share of the landmarks it puts well inside the image that have a feature there
     attitude_m2: float  # squared Mahalanobis distance of its attitude correction from the telemetry's
 
 
@@ -212,9 +227,8 @@ class Localiser:
             return NoFix(t_s, verdict, best_support, n_corr, n_feat)
         p, cov, inl = verdict.p, verdict.cov, verdict.inl
         n_inl = int(inl.sum())
-        share = verdict.score / max(n_inl, 1)
-        if not tracking and share < cfg.min_explained_acquire:
-            return NoFix(t_s, f"acquisition: {share:.0%} of the landmarks expected in view are seen", n_inl, n_corr, n_feat)
+        if not tracking and verdict.explained < cfg.min_explained_acquire:
+            return NoFix(t_s, f"acquisition: {verdict.explained:.0%} of the landmarks expected in view are seen", n_inl, n_corr, n_feat)
         return Fix(t_s, p, cov, n_inl, n_corr, n_feat)
 
     # -- steps -------------------------------------------------------------------------------------------------
@@ -223,13 +237,15 @@ class Localiser:
         """The most probable reading of the frame, or a reason (str) why the frame is ambiguous.
 
         The best-supported hypotheses that are distinct (more than their agreement radius apart) are refined
-        into readings, up to ``max_readings``. Each reading gets a log-likelihood: its inliers times the share
-        of the landmarks it puts inside the image that do have a feature there (a wrong position predicts
-        corners on bare ground), less half the squared Mahalanobis distances of the attitude correction it
-        needs and of its position from the prior. A corner matched to the wrong one of identical cubes, or a
+        into readings, up to ``max_readings``. Each reading gets a log-likelihood: its inliers, each weighed by
+        how well it fits (see :meth:`_refine`), times the share of the landmarks it puts inside the image that
+        do have a feature there (a wrong position predicts corners on bare ground), less half the squared
+        Mahalanobis distances of the attitude correction it needs and of its position from the prior. A corner matched to the wrong one of identical cubes, or a
         small cube read off by its height (its bottom corners taken for its top ones), is a reading of its own,
-        and the image and the prediction together must choose. A second distinct reading within ``margin`` of
-        the best makes the frame ambiguous.
+        and the image and the prediction together must choose. Readings with fewer than ``min_inliers`` inliers
+        compete too, though they cannot be a fix: when one of them is the most probable, the frame has none (a
+        few corners of a small cube fitting the prior within a pixel outweigh six that need a tilt and a shift
+        to fit at all). A second distinct reading within ``margin`` of the best makes the frame ambiguous.
         """
         cfg = self.cfg.positioning
         floor = max(2.0, cfg.rival_min_share * float(support.max()))
@@ -255,16 +271,22 @@ class Localiser:
                 break
             covered |= np.linalg.norm(seed_hyp - seed_hyp[s], axis=1) <= seed_tau
             r = self._reading(corr, view, seeds[s])
-            if int(r.inl.sum()) >= min_inliers and np.all(np.isfinite(r.p)):
+            if int(r.inl.sum()) >= 2 and np.all(np.isfinite(r.p)) and np.all(np.isfinite(r.cov)):
                 readings.append(r)
                 lls.append(r.score - 0.5 * r.attitude_m2 - 0.5 * _prior_m2(r, prior, cfg.prior_floor_m))
-        if not readings:
+        n_inl = np.array([int(r.inl.sum()) for r in readings], int)
+        if not np.any(n_inl >= min_inliers):
             return f"no hypothesis keeps {min_inliers} inliers after refinement"
         ll = np.array(lls)
         order = np.argsort(-ll, kind="stable")
         best = readings[order[0]]
+        if n_inl[order[0]] < min_inliers:
+            # Too few inliers to be a fix, yet more probable than every reading with enough: those are wrong.
+            return f"the most probable reading keeps {n_inl[order[0]]} inliers, fewer than {min_inliers}"
         radius = 2.0 * float(np.median(corr.tau))
         for k in order[1:]:
+            if n_inl[k] < min_inliers:
+                continue
             if np.linalg.norm(readings[k].p[:2] - best.p[:2]) > radius and ll[k] >= ll[order[0]] - margin:
                 return f"ambiguous: a reading {np.linalg.norm(readings[k].p[:2] - best.p[:2]):.2f} m away is within {ll[order[0]] - ll[k]:.1f} of the best"
         return best
@@ -273,8 +295,9 @@ class Localiser:
         """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
         dist2 = cdist(corr.hyp, corr.hyp[seed][None], "sqeuclidean")[:, 0]  # as _consensus measures: the same members
         inl = self._one_per_feature(dist2 <= np.square(corr.tau), corr.feat_i, dist2)
-        p, cov, inl, attitude_m2 = self._refine(np.array([*corr.hyp[seed], -view.alt_m]), corr, inl, view.alt_m, 1.0 / view.features.scale)
-        return _Reading(p, cov, inl, int(inl.sum()) * self._explained_share(p, view), attitude_m2)
+        fit = self._refine(np.array([*corr.hyp[seed], -view.alt_m]), corr, inl, view.alt_m, 1.0 / view.features.scale)
+        explained = self._explained_share(fit.p, view)
+        return _Reading(fit.p, fit.cov, fit.inl, fit.fit_quality * explained, explained, fit.attitude_m2)
 
     def detection_scale(self, alt_m: float, prior: PositionPrior | None, candidate_ids: np.ndarray | None = None) -> float:
         """The image scale (at most 1) at which to detect a frame so that its descriptors see the landmarks in
@@ -387,7 +410,7 @@ class Localiser:
         keep[order[first]] = True
         return keep
 
-    def _refine(self, p0: np.ndarray, corr: _Correspondences, inl: np.ndarray, alt_m: float, pixel_size: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    def _refine(self, p0: np.ndarray, corr: _Correspondences, inl: np.ndarray, alt_m: float, pixel_size: float = 1.0) -> _Fit:
         """Weighted least squares over the inliers for the camera position and a small attitude correction.
 
         Unknowns: position (3) and a rotation ``dtheta`` (3, NED) of the telemetry attitude, which turns each ray
@@ -395,7 +418,10 @@ class Localiser:
         barometer ties the height and the telemetry ties ``dtheta`` to zero with their sigmas. Where the image
         cannot tell a tilt from a shift (one small object), the attitude prior decides and its uncertainty
         lands in the position covariance; where it can (objects spread over the view), both get better.
-        Inliers are re-selected by reprojection error. ``pixel_size``: full-resolution px per detection px.
+        Inliers are re-selected by reprojection error, and weighed by it in the fit's quality: a small cube read
+        off by its height (its top corners taken for its bottom ones) keeps its inliers within the tolerance,
+        but 2 to 3 px off where the right reading has them within 1. ``pixel_size``: full-resolution px per
+        detection px.
 
         The normal equations are formed from weighted sums over the correspondences' (K, 3) rows, not from
         (K, 3, 6) Jacobians: with unit rays the projector ``P = I - d d^T`` and ``[d]x`` make every block of
@@ -448,6 +474,7 @@ class Localiser:
             cov = np.linalg.inv(A)[:3, :3] * max(1.0, chi2 / dof)
             kept &= err_px <= cfg.inlier_px * pixel_size
         attitude_m2 = float(dtheta @ prior_info[3:, 3:] @ dtheta)
+        fit_quality = float(np.sum(np.clip(1.0 - np.square(err_px[kept] / (cfg.inlier_px * pixel_size)), 0.0, 1.0)))
         inl = np.zeros(len(inl), bool)
         inl[idx] = kept
-        return p, cov, inl, attitude_m2
+        return _Fit(p, cov, inl, attitude_m2, fit_quality)
