@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import asdict
 from pathlib import Path
 
 from tabulate import tabulate
@@ -52,6 +53,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json-dir", default="out/tables")
     ap.add_argument("--config")
     ap.add_argument("--sim-config")
+    ap.add_argument("--reuse", action="store_true",
+                    help="take a scenario's figures from --json-dir when a file there was flown with the same rate, seeds and configs")
     args = ap.parse_args(argv)
     pipeline, sim = load_pipeline_config(args.config), load_sim_config(args.sim_config)
     json_dir = Path(args.json_dir)
@@ -62,8 +65,12 @@ def main(argv=None) -> int:
         key = (world, alt)
         if key not in cache:
             path = json_dir / f"{world}_{alt}m.json"
-            cache[key] = evaluate(WORLDS / f"{world}.yaml", float(alt), fps=args.fps, runs=args.runs, seed=args.seed, pipeline=pipeline, sim=sim)
-            path.write_text(json.dumps(cache[key], indent=2))
+            saved = json.loads(path.read_text()) if args.reuse and path.exists() else None
+            if saved is not None and _same_flights(saved["scenario"], args, pipeline, sim):
+                cache[key] = saved
+            else:
+                cache[key] = evaluate(WORLDS / f"{world}.yaml", float(alt), fps=args.fps, runs=args.runs, seed=args.seed, pipeline=pipeline, sim=sim)
+                path.write_text(json.dumps(cache[key], indent=2))
         return cache[key]
 
     lines = [
@@ -100,8 +107,18 @@ def main(argv=None) -> int:
     return 0
 
 
-# The pipeline issue's and the filter issue's targets, checked on every scenario flown above.
-TARGETS = "landmark RMS <= 0.10, fix RMS <= 0.10, p95 <= 0.20, availability >= 0.95, same colour: no fix over 0.5 m; fused RMS <= 0.08, max <= 0.30, within 3 sigma >= 0.97"
+def _same_flights(scenario: dict, args, pipeline, sim) -> bool:
+    """Whether saved figures were flown as this run would fly them (rate, seeds, both configs)."""
+    seeds = list(range(args.seed, args.seed + args.runs))
+    as_saved = lambda cfg: json.loads(json.dumps(asdict(cfg)))  # noqa: E731  (tuples become lists, as in the file)
+    return (scenario["fps"] == args.fps and scenario["seeds"] == seeds and scenario["pipeline"] == as_saved(pipeline)
+            and scenario["sim"] == as_saved(sim))
+
+
+# The pipeline issue's targets, checked on every scenario flown above, and the filter issue's, which it sets at 15 m.
+TARGETS = ("landmark RMS <= 0.10, fix RMS <= 0.10, p95 <= 0.20, availability >= 0.95, same colour: no fix over 0.5 m; "
+           "at 15 m: fused RMS <= 0.08, max <= 0.30, within 3 sigma >= 0.97")
+FUSED_TARGETS_ALT_M = 15
 
 
 def _acceptance(summary) -> list[str]:
@@ -116,10 +133,13 @@ def _acceptance(summary) -> list[str]:
             "fix p95": fx["p95_m"] is not None and fx["p95_m"] <= 0.20,
             "availability": fx["availability"] is not None and fx["availability"] >= 0.95,
             "over 0.5 m": "same" not in world or fx["over_0_5m"] == 0,
-            "fused RMS": fu.get("rms_m") is not None and fu["rms_m"] <= 0.08,
-            "fused max": fu.get("max_m") is not None and fu["max_m"] <= 0.30,
-            "3 sigma": fu.get("within_3sigma") is not None and fu["within_3sigma"] >= 0.97,
         }
+        if alt == FUSED_TARGETS_ALT_M:
+            checks |= {
+                "fused RMS": fu.get("rms_m") is not None and fu["rms_m"] <= 0.08,
+                "fused max": fu.get("max_m") is not None and fu["max_m"] <= 0.30,
+                "3 sigma": fu.get("within_3sigma") is not None and fu["within_3sigma"] >= 0.97,
+            }
         missed = [k for k, ok in checks.items() if not ok]
         failures += bool(missed)
         rows.append([f"{world} @ {alt} m", _f(lm["rms_m"]), _f(fx["rms_m"]), _f(fx["p95_m"]), _f(fx["availability"]), fx["over_0_5m"],
