@@ -61,9 +61,33 @@ class NoFix:
 
 LocateResult = Fix | NoFix
 
-#: Correspondences whose seed memberships are measured at a time: their (block, max_seeds) distances, 600 kB at
-#: 300 seeds, stay in a core's cache.
-_CONSENSUS_BLOCK = 256
+#: Correspondence-seed distances measured at a time (600 kB of float64, as 256 correspondences by 300 seeds): they
+#: stay in a core's cache.
+_CONSENSUS_BLOCK_PAIRS = 256 * 300
+#: Seeds measured in the first round of a frame with more than ``max_seeds`` correspondences.
+_FIRST_SEEDS = 32
+
+
+def _ransac_seeds(inlier_share: float, confidence: float) -> float:
+    """Seeds drawn at random needed to draw one of a set holding ``inlier_share`` of all with probability
+    ``confidence``: ``log(1 - confidence) / log(1 - inlier_share)`` (inf when certainty is asked for, 1 when
+    every one is in the set)."""
+    if inlier_share >= 1.0:
+        return 1.0
+    if confidence >= 1.0:
+        return np.inf
+    return float(np.log1p(-confidence) / np.log1p(-inlier_share))
+
+
+def _prefix_spread_order(n: int) -> np.ndarray:
+    """A permutation of ``range(n)`` whose every prefix is spread over the whole range: the indices in the order
+    of their bit-reversed binary (van der Corput), so that the first 2^j of them are every (n / 2^j)-th."""
+    bits = max(int(n - 1).bit_length(), 1)
+    idx = np.arange(n)
+    rev = np.zeros(n, np.int64)
+    for b in range(bits):
+        rev |= ((idx >> b) & 1) << (bits - 1 - b)
+    return np.argsort(rev, kind="stable")
 
 
 def _prior_m2(reading, prior: PositionPrior | None, floor_m: float) -> float:
@@ -353,28 +377,53 @@ class Localiser:
     def _consensus(self, corr: _Correspondences) -> tuple[np.ndarray, np.ndarray]:
         """Seed indices (S,) and their support in distinct features (S,).
 
-        Correspondence k is a member of seed s when its hypothesis is within its own ``tau`` of the seed's,
-        compared squared (no square root per pair: a few times faster). The (K, S) memberships are packed eight
-        seeds to a byte as they are measured, a block of correspondences at a time (the distances of a block
-        stay in cache; the whole matrix of them would not), so that a feature's vote is an OR of its rows of
-        S / 8 bytes.
+        Correspondence k is a member of seed s when its hypothesis is within its own ``tau`` of the seed's. Every
+        correspondence is a seed when there are at most ``max_seeds``; else seeds are taken from an even spread of
+        ``max_seeds`` over them, in an order whose every prefix is spread too, a round at a time, until the
+        standard RANSAC bound says that a hypothesis with the support a reading needs to be weighed
+        (``rival_min_share`` of the best found) would have been seeded with probability ``seed_confidence``:
+        ``n >= log(1 - p) / log(1 - w)``, ``w`` that support over the correspondences. A frame whose features
+        mostly agree needs few seeds; one with a weak consensus among many correspondences takes all.
         """
         cfg = self.cfg.positioning
-        hyp, tau, feat_i = corr.hyp, corr.tau, corr.feat_i
+        K = len(corr.hyp)
+        # Members grouped by feature, for one vote per feature with any member.
+        order = np.argsort(corr.feat_i, kind="stable")
+        feat_sorted = corr.feat_i[order]
+        starts = np.flatnonzero(np.r_[True, feat_sorted[1:] != feat_sorted[:-1]])
+        if K <= cfg.max_seeds:
+            seeds = np.arange(K)
+            return seeds, self._support(corr, seeds, order, starts)
+        spread = np.linspace(0, K - 1, cfg.max_seeds).astype(int)[_prefix_spread_order(cfg.max_seeds)]
+        n = min(_FIRST_SEEDS, cfg.max_seeds)
+        support = self._support(corr, spread[:n], order, starts)
+        while n < cfg.max_seeds:
+            w = max(2.0, cfg.rival_min_share * float(support.max())) / K  # share of correspondences such a hypothesis has
+            needed = _ransac_seeds(w, cfg.seed_confidence)
+            if n >= needed:
+                break
+            n_next = int(min(cfg.max_seeds, max(np.ceil(needed), n + 8)))
+            support = np.concatenate([support, self._support(corr, spread[n:n_next], order, starts)])
+            n = n_next
+        return spread[:n], support
+
+    @staticmethod
+    def _support(corr: _Correspondences, seeds: np.ndarray, order: np.ndarray, starts: np.ndarray) -> np.ndarray:
+        """Support of ``seeds`` (S,) in distinct features (S,): the memberships are compared squared (no square
+        root per pair) and packed eight seeds to a byte as they are measured, a block of correspondences at a time
+        (the distances of a block stay in cache; the whole matrix of them would not), so that a feature's vote is
+        an OR of its rows of S / 8 bytes. ``order`` sorts the correspondences by feature, ``starts`` marks where
+        each feature's run begins in that order."""
+        hyp, tau2 = corr.hyp, np.square(corr.tau)
         K = len(hyp)
-        # Seeds: every correspondence when few, else an even spread (deterministic).
-        seeds = np.arange(K) if K <= cfg.max_seeds else np.linspace(0, K - 1, cfg.max_seeds).astype(int)
-        seed_hyp, tau2 = hyp[seeds], np.square(tau)
+        seed_hyp = hyp[seeds]
         members_packed = np.empty((K, (len(seeds) + 7) // 8), np.uint8)
-        for k0 in range(0, K, _CONSENSUS_BLOCK):
-            block = slice(k0, k0 + _CONSENSUS_BLOCK)
+        rows = max(_CONSENSUS_BLOCK_PAIRS // max(len(seeds), 1), 1)
+        for k0 in range(0, K, rows):
+            block = slice(k0, k0 + rows)
             members_packed[block] = np.packbits(cdist(hyp[block], seed_hyp, "sqeuclidean") <= tau2[block, None], axis=1)
-        # Support in distinct features: members grouped by feature, one vote per group with any member.
-        order = np.argsort(feat_i, kind="stable")
-        starts = np.flatnonzero(np.r_[True, feat_i[order][1:] != feat_i[order][:-1]])
         votes = np.bitwise_or.reduceat(members_packed[order], starts, axis=0)  # (features, S / 8)
-        support = np.unpackbits(votes, axis=1, count=len(seeds)).sum(axis=0)
-        return seeds, support
+        return np.unpackbits(votes, axis=1, count=len(seeds)).sum(axis=0)
 
     @staticmethod
     def _one_per_feature(member_row: np.ndarray, feat_i: np.ndarray, dist2: np.ndarray) -> np.ndarray:
