@@ -246,14 +246,14 @@ class Localiser:
     def _choose(self, corr: _Correspondences, view: _View, prior, seeds, support, min_inliers: int, margin: float):
         """The most probable reading of the frame, or a reason (str) why the frame is ambiguous.
 
-        The best-supported hypotheses that are distinct (more than their agreement radius apart) are refined
-        into readings, up to ``max_readings``. Each reading gets a log-likelihood: its inliers times the share
-        of the landmarks it puts inside the image that do have a feature there (a wrong position predicts
-        corners on bare ground), less half the squared Mahalanobis distances of the attitude correction it
-        needs and of its position from the prior. A corner matched to the wrong one of identical cubes, or a
-        small cube read off by its height (its bottom corners taken for its top ones), is a reading of its own,
-        and the image and the prediction together must choose. A second distinct reading within ``margin`` of
-        the best makes the frame ambiguous.
+        The best-supported hypotheses that are distinct (more than their agreement radius apart, and from the refined
+        positions of the readings taken) are refined into readings, up to ``max_readings``. Each reading gets a
+        log-likelihood: its inliers times the share of the landmarks it puts inside the image that do have a feature
+        there (a wrong position predicts corners on bare ground), less half the squared Mahalanobis distances of the
+        attitude correction it needs and of its position from the prior. A corner matched to the wrong one of
+        identical cubes, or a small cube read off by its height (its bottom corners taken for its top ones), is a
+        reading of its own, and the image and the prediction together must choose. A second distinct reading within
+        ``margin`` of the best makes the frame ambiguous.
         """
         cfg = self.cfg.positioning
         floor = max(2.0, cfg.rival_min_share * float(support.max()))
@@ -279,6 +279,9 @@ class Localiser:
                 break
             covered |= np.linalg.norm(seed_hyp - seed_hyp[s], axis=1) <= seed_tau
             r = self._reading(corr, view, seeds[s])
+            # The seeds whose hypotheses the reading's refined position agrees with are its own as well: their
+            # readings would refine to the same place (on the bench they did, a few cm off, at a reading each).
+            covered |= np.linalg.norm(seed_hyp - r.p[:2], axis=1) <= seed_tau  # NaN positions cover none
             if int(r.inl.sum()) >= min_inliers and np.all(np.isfinite(r.p)):
                 readings.append(r)
                 lls.append(r.score - 0.5 * r.attitude_m2 - 0.5 * _prior_m2(r, prior, cfg.prior_floor_m))
