@@ -314,3 +314,21 @@ def test_consensus_stops_seeding_once_a_strong_consensus_is_found(camera, pipeli
     assert len(seeds) < pipeline.positioning.max_seeds / 2
     np.testing.assert_array_equal(support, support_by_brute_force(corr, seeds))
     assert support.max() == support_all.max()
+
+
+@pytest.mark.parametrize("radix", [True, False])
+def test_pairs_within_equals_brute_force_in_order(monkeypatch, radix):
+    """Every pair within the radius, bound included, ordered by i then j: by the radix sorts of 16-bit indices and
+    by the one sort of (i, j) keys that larger index sets take."""
+    import auxgps.core.features as features
+
+    if not radix:
+        monkeypatch.setattr(features, "_RADIX_SORTABLE", 0)
+    rng = np.random.default_rng(11)
+    a = rng.uniform(0, 200, (300, 2)).round()  # whole pixels: some pairs exactly at the radius
+    b = rng.uniform(0, 200, (500, 2)).round()
+    i, j = features.pairs_within(a, b, 10.0)
+    i_ref, j_ref = np.nonzero(np.linalg.norm(a[:, None] - b[None], axis=2) <= 10.0)  # row-major: i then j
+    np.testing.assert_array_equal(i, i_ref)
+    np.testing.assert_array_equal(j, j_ref)
+    assert i.dtype == j.dtype == np.int64
