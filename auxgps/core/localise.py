@@ -230,7 +230,9 @@ class Localiser:
         best_support = int(support.max())
         if best_support < min_inliers:
             return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
-        view = _View(features, cKDTree(features.uv_px), R_ned_cam, alt_m, p_cand_ned_m @ R_ned_cam)
+        # Unbalanced: half the build time of a frame's features, the same nearest distances.
+        feature_tree = cKDTree(features.uv_px, balanced_tree=False, compact_nodes=False)
+        view = _View(features, feature_tree, R_ned_cam, alt_m, p_cand_ned_m @ R_ned_cam)
         verdict = self._choose(corr, view, prior, seeds, support, min_inliers, margin)
         if isinstance(verdict, str):
             return NoFix(t_s, verdict, best_support, n_corr, n_feat)
