@@ -64,8 +64,6 @@ LocateResult = Fix | NoFix
 #: Correspondence-seed distances measured at a time (600 kB of float64, as 256 correspondences by 300 seeds): they
 #: stay in a core's cache.
 _CONSENSUS_BLOCK_PAIRS = 256 * 300
-#: Seeds measured in the first round of a frame with more than ``max_seeds`` correspondences.
-_FIRST_SEEDS = 32
 
 
 def _ransac_seeds(inlier_share: float, confidence: float) -> float:
@@ -384,11 +382,13 @@ class Localiser:
 
         Correspondence k is a member of seed s when its hypothesis is within its own ``tau`` of the seed's. Every
         correspondence is a seed when there are at most ``max_seeds``; else seeds are taken from an even spread of
-        ``max_seeds`` over them, in an order whose every prefix is spread too, a round at a time, until the
-        standard RANSAC bound says that a hypothesis with the support a reading needs to be weighed
-        (``rival_min_share`` of the best found) would have been seeded with probability ``seed_confidence``:
-        ``n >= log(1 - p) / log(1 - w)``, ``w`` that support over the correspondences. A frame whose features
-        mostly agree needs few seeds; one with a weak consensus among many correspondences takes all.
+        ``max_seeds`` over them, in an order whose every prefix is spread too, until the standard RANSAC bound
+        says that a hypothesis with the support a reading needs to be weighed (``rival_min_share`` of the best
+        found) would have been seeded with probability ``seed_confidence``: ``n >= log(1 - p) / log(1 - w)``,
+        ``w`` that support over the correspondences. The first round seeds what the bound asks if every feature
+        supports the best (it cannot ask for fewer); a further round follows only if the best found asks for
+        more. A frame whose features mostly agree needs few seeds; one with a weak consensus among many
+        correspondences takes all.
         """
         cfg = self.cfg.positioning
         K = len(corr.hyp)
@@ -400,14 +400,18 @@ class Localiser:
             seeds = np.arange(K)
             return seeds, self._support(corr, seeds, order, starts)
         spread = np.linspace(0, K - 1, cfg.max_seeds).astype(int)[_prefix_spread_order(cfg.max_seeds)]
-        n = min(_FIRST_SEEDS, cfg.max_seeds)
-        support = self._support(corr, spread[:n], order, starts)
-        while n < cfg.max_seeds:
-            w = max(2.0, cfg.rival_min_share * float(support.max())) / K  # share of correspondences such a hypothesis has
+
+        def seeds_for(best_support: float) -> int:
+            """Seeds the bound asks for when the best support is ``best_support``, in whole bytes of eight (their
+            memberships are packed in bytes: the rest of a byte costs nothing), at most ``max_seeds``."""
+            w = max(2.0, cfg.rival_min_share * best_support) / K  # share of correspondences a rival has
             needed = _ransac_seeds(w, cfg.seed_confidence)
-            if n >= needed:
-                break
-            n_next = int(min(cfg.max_seeds, max(np.ceil(needed), n + 8)))
+            return int(min(cfg.max_seeds, 8 * np.ceil(needed / 8))) if np.isfinite(needed) else cfg.max_seeds
+
+        # No hypothesis has more support than there are features: the first round seeds what that would ask.
+        n = max(seeds_for(len(starts)), min(8, cfg.max_seeds))
+        support = self._support(corr, spread[:n], order, starts)
+        while n < (n_next := seeds_for(float(support.max()))):
             support = np.concatenate([support, self._support(corr, spread[n:n_next], order, starts)])
             n = n_next
         return spread[:n], support
