@@ -113,6 +113,9 @@ class PositioningConfig:
     ambiguity_margin_acquire: NonNegative = 5.0
     min_explained_acquire: Probability = 0.6
     max_seeds: Annotated[int, Field(ge=1)] = 300
+    # Past max_seeds correspondences, seeds are added until one of a hypothesis supported by rival_min_share of
+    # the best would have been drawn with this probability (the RANSAC bound); 1 takes all max_seeds.
+    seed_confidence: Probability = 0.999
     max_tracking_search_m: Positive = 1.5  # a prior looser than this (3 sigma, m) means acquisition
     min_search_radius_m: NonNegative = 1.0
     rival_min_share: Annotated[float, Field(gt=0, le=1)] = 0.3  # readings with less support are not weighed

@@ -7,10 +7,12 @@ import pytest
 
 from auxgps.config import FusionConfig
 from auxgps.core.fusion import GRAVITY_NED_M_S2, ImuSample, NavFilter
+from auxgps.core.geometry import R_ned_body_from_euler
 
 atol = 1e-12
 LEVEL = np.eye(3)
 HOVER_F = -GRAVITY_NED_M_S2  # specific force of a level vehicle at rest, body = NED
+R_TILTED = R_ned_body_from_euler(0.1, -0.05, 0.7)
 
 
 def hover(t):
@@ -35,6 +37,32 @@ def test_prediction_matches_hand_computation():
     q = 0.1**2
     assert est.cov_p_m2[0, 0] == pytest.approx(1.0 + 0.25 * dt**2 + q * dt**3 / 3, abs=atol)
     assert est.cov_v_m2_s2[0, 0] == pytest.approx(0.25 + q * dt, abs=atol)
+
+
+def test_transition_and_noise_are_the_block_formulas_exactly():
+    """F, B and Q as _predict writes them are, to the bit, the textbook blocks of scaled identities."""
+    cfg = FusionConfig()
+    f = make(cfg)
+    R = R_TILTED
+    dt = 0.0049999999999990052  # an IMU step as a difference of sample times
+    f._predict(ImuSample(dt, HOVER_F.copy(), R))
+    I3, q = np.eye(3), cfg.accel_noise_m_s2_sqrt_hz**2
+    F = np.eye(11)
+    F[0:3, 3:6] = I3 * dt
+    F[0:3, 6:9] = -0.5 * R * dt * dt
+    F[3:6, 6:9] = -R * dt
+    decay = np.exp(-dt / cfg.fix_bias_tau_s)
+    F[9:11, 9:11] = np.eye(2) * decay
+    B = np.vstack([0.5 * I3 * dt * dt, I3 * dt, np.zeros((5, 3))])
+    Q = np.zeros((11, 11))
+    Q[0:3, 0:3] = I3 * q * dt**3 / 3.0
+    Q[0:3, 3:6] = Q[3:6, 0:3] = I3 * q * dt**2 / 2.0
+    Q[3:6, 3:6] = I3 * q * dt
+    Q[6:9, 6:9] = I3 * cfg.accel_bias_walk_m_s2_sqrt_s**2 * dt
+    Q[9:11, 9:11] = np.eye(2) * cfg.fix_bias_sigma_m**2 * (1.0 - decay**2)
+    np.testing.assert_array_equal(f._ekf.F, F)
+    np.testing.assert_array_equal(f._ekf.B, B)
+    np.testing.assert_array_equal(f._ekf.Q, Q)
 
 
 def test_position_update_matches_hand_computation():

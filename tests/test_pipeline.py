@@ -8,7 +8,7 @@ from auxgps.core.camera import CameraPose
 from auxgps.core.features import Features, FeatureDetector
 from auxgps.core.geometry import R_BODY_CAM_DOWN, R_ned_body_from_euler, cross_matrix
 from auxgps.core.landmarks import LandmarkMap
-from auxgps.core.localise import Fix, Localiser, NoFix, PositionPrior, _Correspondences
+from auxgps.core.localise import Fix, Localiser, NoFix, PositionPrior, _Correspondences, _prefix_spread_order, _ransac_seeds
 from auxgps.core.mapping import Mapper
 from auxgps.core.nav import NavSample
 from auxgps.errors import FrameError
@@ -295,3 +295,77 @@ def test_short_mapping_then_positioning_flight(pipeline):
     assert len(lm_err) >= 10 and np.sqrt(np.mean(lm_err**2)) < 0.15
     assert rec.n_eligible_fixed / rec.n_eligible_frames > 0.8
     assert np.sqrt(np.mean(fix_err**2)) < 0.15 and fix_err.max() < 0.5
+
+
+def test_ransac_seed_bound_known_answers():
+    """Half the seeds in the set: two draws find one with probability 0.75; certainty takes every seed."""
+    assert _ransac_seeds(0.5, 0.75) == pytest.approx(2.0, rel=rtol_equal)
+    assert _ransac_seeds(0.084, 0.999) == pytest.approx(np.log(0.001) / np.log(1.0 - 0.084), rel=rtol_equal)
+    assert _ransac_seeds(1.0, 0.999) == 1.0
+    assert _ransac_seeds(0.3, 1.0) == np.inf
+
+
+def test_prefix_spread_order_is_a_permutation_whose_prefixes_spread():
+    np.testing.assert_array_equal(_prefix_spread_order(8), [0, 4, 2, 6, 1, 5, 3, 7])
+    order = _prefix_spread_order(300)
+    np.testing.assert_array_equal(np.sort(order), np.arange(300))
+    assert np.max(np.diff(np.sort(order[:32]))) <= 2 * 300 // 32  # no gap wider than twice an even spread's
+
+
+def consensus_scene(n_features=400, n_right=300, seed=5):
+    """Correspondences of ``n_features`` features: ``n_right`` of them with one whose hypothesis is near (1, 2) m,
+    every feature with two wrong ones spread over 6 m by 6 m; tau 0.1 m."""
+    rng = np.random.default_rng(seed)
+    right = np.arange(n_right)
+    feat_i = np.sort(np.concatenate([right, np.repeat(np.arange(n_features), 2)]))
+    hyp = rng.uniform(-3.0, 3.0, (len(feat_i), 2))
+    first = np.searchsorted(feat_i, right)  # each right feature's first correspondence is its right one
+    hyp[first] = np.array([1.0, 2.0]) + rng.normal(0.0, 0.02, (n_right, 2))
+    K = len(feat_i)
+    return _Correspondences(feat_i, np.arange(K), np.zeros((K, 3)), np.tile([0.0, 0.0, 1.0], (K, 1)), hyp, np.full(K, 0.1))
+
+
+def support_by_brute_force(corr, seeds):
+    near = np.linalg.norm(corr.hyp[:, None, :] - corr.hyp[seeds][None], axis=2) <= corr.tau[:, None]
+    return np.array([len(np.unique(corr.feat_i[near[:, s]])) for s in range(len(seeds))])
+
+
+def test_consensus_at_full_confidence_seeds_the_whole_even_spread(camera, pipeline):
+    corr = consensus_scene()
+    cfg = parse_as(PipelineConfig, {"positioning": {"seed_confidence": 1.0}}, "test")
+    seeds, support = Localiser(cfg, camera, R_BODY_CAM_DOWN, LandmarkMap())._consensus(corr)
+    max_seeds = cfg.positioning.max_seeds
+    np.testing.assert_array_equal(np.sort(seeds), np.linspace(0, len(corr.hyp) - 1, max_seeds).astype(int))
+    np.testing.assert_array_equal(support, support_by_brute_force(corr, seeds))
+
+
+def test_consensus_stops_seeding_once_a_strong_consensus_is_found(camera, pipeline):
+    """300 of 1100 correspondences agree: far fewer seeds than max_seeds are enough by the RANSAC bound, and
+    they find the consensus with the support all the seeds find."""
+    corr = consensus_scene()
+    seeds, support = Localiser(pipeline, camera, R_BODY_CAM_DOWN, LandmarkMap())._consensus(corr)
+    cfg = parse_as(PipelineConfig, {"positioning": {"seed_confidence": 1.0}}, "test")
+    _, support_all = Localiser(cfg, camera, R_BODY_CAM_DOWN, LandmarkMap())._consensus(corr)
+    w = pipeline.positioning.rival_min_share * support.max() / len(corr.hyp)
+    assert len(seeds) >= _ransac_seeds(w, pipeline.positioning.seed_confidence)
+    assert len(seeds) < pipeline.positioning.max_seeds / 2
+    np.testing.assert_array_equal(support, support_by_brute_force(corr, seeds))
+    assert support.max() == support_all.max()
+
+
+@pytest.mark.parametrize("radix", [True, False])
+def test_pairs_within_equals_brute_force_in_order(monkeypatch, radix):
+    """Every pair within the radius, bound included, ordered by i then j: by the radix sorts of 16-bit indices and
+    by the one sort of (i, j) keys that larger index sets take."""
+    import auxgps.core.features as features
+
+    if not radix:
+        monkeypatch.setattr(features, "_RADIX_SORTABLE", 0)
+    rng = np.random.default_rng(11)
+    a = rng.uniform(0, 200, (300, 2)).round()  # whole pixels: some pairs exactly at the radius
+    b = rng.uniform(0, 200, (500, 2)).round()
+    i, j = features.pairs_within(a, b, 10.0)
+    i_ref, j_ref = np.nonzero(np.linalg.norm(a[:, None] - b[None], axis=2) <= 10.0)  # row-major: i then j
+    np.testing.assert_array_equal(i, i_ref)
+    np.testing.assert_array_equal(j, j_ref)
+    assert i.dtype == j.dtype == np.int64

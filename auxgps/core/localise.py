@@ -61,9 +61,31 @@ class NoFix:
 
 LocateResult = Fix | NoFix
 
-#: Correspondences whose seed memberships are measured at a time: their (block, max_seeds) distances, 600 kB at
-#: 300 seeds, stay in a core's cache.
-_CONSENSUS_BLOCK = 256
+#: Correspondence-seed distances measured at a time (600 kB of float64, as 256 correspondences by 300 seeds): they
+#: stay in a core's cache.
+_CONSENSUS_BLOCK_PAIRS = 256 * 300
+
+
+def _ransac_seeds(inlier_share: float, confidence: float) -> float:
+    """Seeds drawn at random needed to draw one of a set holding ``inlier_share`` of all with probability
+    ``confidence``: ``log(1 - confidence) / log(1 - inlier_share)`` (inf when certainty is asked for, 1 when
+    every one is in the set)."""
+    if inlier_share >= 1.0:
+        return 1.0
+    if confidence >= 1.0:
+        return np.inf
+    return float(np.log1p(-confidence) / np.log1p(-inlier_share))
+
+
+def _prefix_spread_order(n: int) -> np.ndarray:
+    """A permutation of ``range(n)`` whose every prefix is spread over the whole range: the indices in the order
+    of their bit-reversed binary (van der Corput), so that the first 2^j of them are every (n / 2^j)-th."""
+    bits = max(int(n - 1).bit_length(), 1)
+    idx = np.arange(n)
+    rev = np.zeros(n, np.int64)
+    for b in range(bits):
+        rev |= ((idx >> b) & 1) << (bits - 1 - b)
+    return np.argsort(rev, kind="stable")
 
 
 def _prior_m2(reading, prior: PositionPrior | None, floor_m: float) -> float:
@@ -221,7 +243,9 @@ class Localiser:
         best_support = int(support.max())
         if best_support < min_inliers:
             return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
-        view = _View(features, cKDTree(features.uv_px), R_ned_cam, alt_m, p_cand_ned_m @ R_ned_cam)
+        # Unbalanced: half the build time of a frame's features, the same nearest distances.
+        feature_tree = cKDTree(features.uv_px, balanced_tree=False, compact_nodes=False)
+        view = _View(features, feature_tree, R_ned_cam, alt_m, p_cand_ned_m @ R_ned_cam)
         verdict = self._choose(corr, view, prior, seeds, support, min_inliers, margin)
         if isinstance(verdict, str):
             return NoFix(t_s, verdict, best_support, n_corr, n_feat)
@@ -236,16 +260,17 @@ class Localiser:
     def _choose(self, corr: _Correspondences, view: _View, prior, seeds, support, min_inliers: int, margin: float):
         """The most probable reading of the frame, or a reason (str) why the frame is ambiguous.
 
-        The best-supported hypotheses that are distinct (more than their agreement radius apart) are refined
-        into readings, up to ``max_readings``. Each reading gets a log-likelihood: its inliers, each weighed by
-        how well it fits (see :meth:`_refine`), times the share of the landmarks it puts inside the image that
-        do have a feature there (a wrong position predicts corners on bare ground), less half the squared
-        Mahalanobis distances of the attitude correction it needs and of its position from the prior. A corner matched to the wrong one of identical cubes, or a
-        small cube read off by its height (its bottom corners taken for its top ones), is a reading of its own,
-        and the image and the prediction together must choose. Readings with fewer than ``min_inliers`` inliers
-        compete too, though they cannot be a fix: when one of them is the most probable, the frame has none (a
-        few corners of a small cube fitting the prior within a pixel outweigh six that need a tilt and a shift
-        to fit at all). A second distinct reading within ``margin`` of the best makes the frame ambiguous.
+        The best-supported hypotheses that are distinct (more than their agreement radius apart, and from the
+        refined positions of the readings taken) are refined into readings, up to ``max_readings``. Each reading
+        gets a log-likelihood: its inliers, each weighed by how well it fits (see :meth:`_refine`), times the
+        share of the landmarks it puts inside the image that do have a feature there (a wrong position predicts
+        corners on bare ground), less half the squared Mahalanobis distances of the attitude correction it needs
+        and of its position from the prior. A corner matched to the wrong one of identical cubes, or a small cube
+        read off by its height (its bottom corners taken for its top ones), is a reading of its own, and the image
+        and the prediction together must choose. Readings with fewer than ``min_inliers`` inliers compete too,
+        though they cannot be a fix: when one of them is the most probable, the frame has none (a few corners of a
+        small cube fitting the prior within a pixel outweigh six that need a tilt and a shift to fit at all). A
+        second distinct reading within ``margin`` of the best makes the frame ambiguous.
         """
         cfg = self.cfg.positioning
         floor = max(2.0, cfg.rival_min_share * float(support.max()))
@@ -271,6 +296,9 @@ class Localiser:
                 break
             covered |= np.linalg.norm(seed_hyp - seed_hyp[s], axis=1) <= seed_tau
             r = self._reading(corr, view, seeds[s])
+            # The seeds whose hypotheses the reading's refined position agrees with are its own as well: their
+            # readings would refine to the same place (on the bench they did, a few cm off, at a reading each).
+            covered |= np.linalg.norm(seed_hyp - r.p[:2], axis=1) <= seed_tau  # NaN positions cover none
             if int(r.inl.sum()) >= 2 and np.all(np.isfinite(r.p)) and np.all(np.isfinite(r.cov)):
                 readings.append(r)
                 lls.append(r.score - 0.5 * r.attitude_m2 - 0.5 * _prior_m2(r, prior, cfg.prior_floor_m))
@@ -376,28 +404,59 @@ class Localiser:
     def _consensus(self, corr: _Correspondences) -> tuple[np.ndarray, np.ndarray]:
         """Seed indices (S,) and their support in distinct features (S,).
 
-        Correspondence k is a member of seed s when its hypothesis is within its own ``tau`` of the seed's,
-        compared squared (no square root per pair: a few times faster). The (K, S) memberships are packed eight
-        seeds to a byte as they are measured, a block of correspondences at a time (the distances of a block
-        stay in cache; the whole matrix of them would not), so that a feature's vote is an OR of its rows of
-        S / 8 bytes.
+        Correspondence k is a member of seed s when its hypothesis is within its own ``tau`` of the seed's. Every
+        correspondence is a seed when there are at most ``max_seeds``; else seeds are taken from an even spread of
+        ``max_seeds`` over them, in an order whose every prefix is spread too, until the standard RANSAC bound
+        says that a hypothesis with the support a reading needs to be weighed (``rival_min_share`` of the best
+        found) would have been seeded with probability ``seed_confidence``: ``n >= log(1 - p) / log(1 - w)``,
+        ``w`` that support over the correspondences. The first round seeds what the bound asks if every feature
+        supports the best (it cannot ask for fewer); a further round follows only if the best found asks for
+        more. A frame whose features mostly agree needs few seeds; one with a weak consensus among many
+        correspondences takes all.
         """
         cfg = self.cfg.positioning
-        hyp, tau, feat_i = corr.hyp, corr.tau, corr.feat_i
+        K = len(corr.hyp)
+        # Members grouped by feature, for one vote per feature with any member.
+        order = np.argsort(corr.feat_i, kind="stable")
+        feat_sorted = corr.feat_i[order]
+        starts = np.flatnonzero(np.r_[True, feat_sorted[1:] != feat_sorted[:-1]])
+        if K <= cfg.max_seeds:
+            seeds = np.arange(K)
+            return seeds, self._support(corr, seeds, order, starts)
+        spread = np.linspace(0, K - 1, cfg.max_seeds).astype(int)[_prefix_spread_order(cfg.max_seeds)]
+
+        def seeds_for(best_support: float) -> int:
+            """Seeds the bound asks for when the best support is ``best_support``, in whole bytes of eight (their
+            memberships are packed in bytes: the rest of a byte costs nothing), at most ``max_seeds``."""
+            w = max(2.0, cfg.rival_min_share * best_support) / K  # share of correspondences a rival has
+            needed = _ransac_seeds(w, cfg.seed_confidence)
+            return int(min(cfg.max_seeds, 8 * np.ceil(needed / 8))) if np.isfinite(needed) else cfg.max_seeds
+
+        # No hypothesis has more support than there are features: the first round seeds what that would ask.
+        n = max(seeds_for(len(starts)), min(8, cfg.max_seeds))
+        support = self._support(corr, spread[:n], order, starts)
+        while n < (n_next := seeds_for(float(support.max()))):
+            support = np.concatenate([support, self._support(corr, spread[n:n_next], order, starts)])
+            n = n_next
+        return spread[:n], support
+
+    @staticmethod
+    def _support(corr: _Correspondences, seeds: np.ndarray, order: np.ndarray, starts: np.ndarray) -> np.ndarray:
+        """Support of ``seeds`` (S,) in distinct features (S,): the memberships are compared squared (no square
+        root per pair) and packed eight seeds to a byte as they are measured, a block of correspondences at a time
+        (the distances of a block stay in cache; the whole matrix of them would not), so that a feature's vote is
+        an OR of its rows of S / 8 bytes. ``order`` sorts the correspondences by feature, ``starts`` marks where
+        each feature's run begins in that order."""
+        hyp, tau2 = corr.hyp, np.square(corr.tau)
         K = len(hyp)
-        # Seeds: every correspondence when few, else an even spread (deterministic).
-        seeds = np.arange(K) if K <= cfg.max_seeds else np.linspace(0, K - 1, cfg.max_seeds).astype(int)
-        seed_hyp, tau2 = hyp[seeds], np.square(tau)
+        seed_hyp = hyp[seeds]
         members_packed = np.empty((K, (len(seeds) + 7) // 8), np.uint8)
-        for k0 in range(0, K, _CONSENSUS_BLOCK):
-            block = slice(k0, k0 + _CONSENSUS_BLOCK)
+        rows = max(_CONSENSUS_BLOCK_PAIRS // max(len(seeds), 1), 1)
+        for k0 in range(0, K, rows):
+            block = slice(k0, k0 + rows)
             members_packed[block] = np.packbits(cdist(hyp[block], seed_hyp, "sqeuclidean") <= tau2[block, None], axis=1)
-        # Support in distinct features: members grouped by feature, one vote per group with any member.
-        order = np.argsort(feat_i, kind="stable")
-        starts = np.flatnonzero(np.r_[True, feat_i[order][1:] != feat_i[order][:-1]])
         votes = np.bitwise_or.reduceat(members_packed[order], starts, axis=0)  # (features, S / 8)
-        support = np.unpackbits(votes, axis=1, count=len(seeds)).sum(axis=0)
-        return seeds, support
+        return np.unpackbits(votes, axis=1, count=len(seeds)).sum(axis=0)
 
     @staticmethod
     def _one_per_feature(member_row: np.ndarray, feat_i: np.ndarray, dist2: np.ndarray) -> np.ndarray:
@@ -466,10 +525,12 @@ class Localiser:
             b[2] += -alt_m * prior_info[2, 2]
             z = np.linalg.solve(A, b)
             p, dtheta = z[:3], z[3:]
-            # Offset of each landmark from its corrected ray, m: P (L - p) + t d x dtheta.
-            resid = PL - p + (d @ p)[:, None] * d + t[:, None] * np.cross(d, dtheta)
-            err_px = np.linalg.norm(resid, axis=1) / np.maximum(t, 1e-6) * f
-            chi2 = float(w @ np.einsum("ki,ki->k", resid, resid))
+            # Offset of each landmark from its corrected ray, m: P (L - p) + t d x dtheta, with d x dtheta as
+            # d @ [dtheta]x (one 3x3 product for all rows: np.cross on (K, 3) costs several times more).
+            resid = PL - p + (d @ p)[:, None] * d + t[:, None] * (d @ cross_matrix(dtheta))
+            resid2 = np.einsum("ki,ki->k", resid, resid)
+            err_px = np.sqrt(resid2) / np.maximum(t, 1e-6) * f
+            chi2 = float(w @ resid2)
             dof = max(2 * n_inl - 3, 1)
             cov = np.linalg.inv(A)[:3, :3] * max(1.0, chi2 / dof)
             kept &= err_px <= cfg.inlier_px * pixel_size
