@@ -83,7 +83,12 @@ def test_run_reconnects_after_the_autopilot_restarts_and_ignores_noise(tmp_path)
     run = start_run(port, tmp_path / "run", "--duration", "60")
     second = None
     try:
-        time.sleep(12)
+        # Until auxgps has sent the first autopilot 80 GPS_INPUT (one row each in its log), not a fixed time: on
+        # a loaded machine its start-up alone has taken most of 12 s.
+        sent = tmp_path / "run" / "gps_input.csv"
+        deadline = time.monotonic() + 45
+        while time.monotonic() < deadline and (not sent.exists() or len(sent.read_text().splitlines()) <= 80):
+            time.sleep(0.5)
         first.send_signal(2)  # SIGINT: the emulator writes its log and exits; the link drops
         first.wait(timeout=10)
         second = emulator("second.json", 15)
