@@ -270,7 +270,7 @@ class Localiser:
         and the prediction together must choose. Readings with fewer than ``min_inliers`` inliers compete too,
         though they cannot be a fix: when one of them is the most probable, the frame has none (a few corners of a
         small cube fitting the prior within a pixel outweigh six that need a tilt and a shift to fit at all). A
-        second distinct reading within ``margin`` of the best makes the frame ambiguous.
+        second distinct reading with enough inliers within ``margin`` of the best makes the frame ambiguous.
         """
         cfg = self.cfg.positioning
         floor = max(2.0, cfg.rival_min_share * float(support.max()))
