@@ -165,6 +165,9 @@ class Localiser:
         noise = cfg.noise
         # What the refinement knows of its unknowns (position, attitude correction) beforehand: the barometer's
         # height and the telemetry's attitude, information 1/m^2 and 1/rad^2.
+        # The order seeds are taken from their even spread in (every prefix spread too): it depends on max_seeds
+        # alone, so it is made once, not per frame.
+        self._seed_order = _prefix_spread_order(cfg.positioning.max_seeds)
         self._refine_prior_info = np.diag(
             [0.0, 0.0, 1.0 / noise.altitude_m**2]
             + [1.0 / np.deg2rad(noise.attitude_deg) ** 2] * 2
@@ -423,7 +426,7 @@ class Localiser:
         if K <= cfg.max_seeds:
             seeds = np.arange(K)
             return seeds, self._support(corr, seeds, order, starts)
-        spread = np.linspace(0, K - 1, cfg.max_seeds).astype(int)[_prefix_spread_order(cfg.max_seeds)]
+        spread = np.linspace(0, K - 1, cfg.max_seeds).astype(int)[self._seed_order]
 
         def seeds_for(best_support: float) -> int:
             """Seeds the bound asks for when the best support is ``best_support``, in whole bytes of eight (their
