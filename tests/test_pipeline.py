@@ -1,5 +1,6 @@
 """Mapping and positioning: known answers on synthetic views, robustness to bad frames, and a short flight."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -15,6 +16,7 @@ from auxgps.errors import FrameError
 from auxgps.evaluation.scenario import run_once
 from auxgps.sim.flight import SimConfig, SurveyConfig
 from auxgps.sim.render import Renderer
+from auxgps.sim.texture import gravel_texture
 from tests.conftest import make_world
 
 atol_fix_m = 0.05  # 5 cm: noise-free views, pixel quantisation only
@@ -224,6 +226,52 @@ def test_nan_attitude_gives_no_fix(camera, pipeline, scene):
 def test_malformed_frame_is_a_named_error(pipeline, bad):
     with pytest.raises(FrameError):
         FeatureDetector(pipeline.detector).detect(bad)
+
+
+def gravel_image(contrast: float, seed: int = 3) -> np.ndarray:
+    """A 1280x720 grey view of the benchmark's gravel, its contrast scaled by ``contrast``: corners everywhere."""
+    grey = cv2.cvtColor(gravel_texture(1280, seed)[:720], cv2.COLOR_BGR2GRAY).astype(float)
+    return np.clip(128.0 + contrast * (grey - grey.mean()), 0, 255).astype(np.uint8)
+
+
+def sorted_features(feats):
+    order = np.lexsort(feats.uv_px.T)
+    return feats.uv_px[order], feats.descriptors[order]
+
+
+def test_a_frame_rich_in_corners_gets_the_same_features_from_the_first_higher_threshold(pipeline):
+    cfg = pipeline.detector
+    assert cfg.fast_threshold_first > cfg.fast_threshold
+    image = gravel_image(contrast=1.0)
+    two_pass = FeatureDetector(cfg)
+    assert len(two_pass.orb_first.detect(image)) >= cfg.n_features  # the first threshold fills the budget here
+    one_pass = FeatureDetector(parse_as(type(cfg), dict(fast_threshold_first=cfg.fast_threshold), "test"))
+    R = R_ned_body_from_euler(0.0, 0.0, 0.4) @ R_BODY_CAM_DOWN
+    uv_two, desc_two = sorted_features(two_pass.detect(image, R))
+    uv_one, desc_one = sorted_features(one_pass.detect(image, R))
+    np.testing.assert_array_equal(uv_two, uv_one)
+    np.testing.assert_array_equal(desc_two, desc_one)
+
+
+def test_a_frame_poor_in_corners_is_detected_again_at_the_lower_threshold(pipeline):
+    cfg = pipeline.detector
+    image = gravel_image(contrast=0.2)  # corners the floor sees, and the first threshold not
+    two_pass = FeatureDetector(cfg)
+    assert len(two_pass.orb_first.detect(image)) < 0.1 * cfg.n_features
+    one_pass = FeatureDetector(parse_as(type(cfg), dict(fast_threshold_first=cfg.fast_threshold), "test"))
+    uv_two, desc_two = sorted_features(two_pass.detect(image))
+    assert len(uv_two) >= 0.9 * cfg.n_features
+    uv_one, desc_one = sorted_features(one_pass.detect(image))
+    np.testing.assert_array_equal(uv_two, uv_one)
+    np.testing.assert_array_equal(desc_two, desc_one)
+
+
+def test_a_first_threshold_below_the_floor_is_a_named_error():
+    from auxgps.config import DetectorConfig
+    from auxgps.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="fast_threshold_first"):
+        parse_as(DetectorConfig, dict(fast_threshold=20, fast_threshold_first=10), "test")
 
 
 def test_mapping_puts_a_cube_corner_on_the_corner(camera, pipeline):

@@ -43,14 +43,16 @@ class FeatureDetector:
 
     def __init__(self, cfg) -> None:
         self.cfg = cfg
-        self.orb = cv2.ORB_create(
+        make = lambda threshold: cv2.ORB_create(  # noqa: E731
             nfeatures=cfg.n_features,
             scaleFactor=cfg.scale_factor,
             nlevels=cfg.n_levels,
             edgeThreshold=cfg.edge_threshold_px,
             patchSize=max(cfg.edge_threshold_px, 2),
-            fastThreshold=cfg.fast_threshold,
+            fastThreshold=threshold,
         )
+        self.orb = make(cfg.fast_threshold)
+        self.orb_first = make(cfg.fast_threshold_first) if cfg.fast_threshold_first > cfg.fast_threshold else None
 
     def detect(self, image: np.ndarray, R_ned_cam: np.ndarray | None = None, scale: float = 1.0) -> "Features":
         """Features of ``image``. With the camera's attitude ``R_ned_cam`` (and ``north_aligned`` set), every
@@ -67,7 +69,7 @@ class FeatureDetector:
         if scale < 1.0 and gray.size:
             size = (max(int(round(gray.shape[1] * scale)), 1), max(int(round(gray.shape[0] * scale)), 1))
             gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
-        feats = detect(self.orb, gray, self.cfg.min_harris, angle)
+        feats = detect(self.orb, gray, self.cfg.min_harris, angle, self.orb_first)
         if self.cfg.subpixel_window_px > 0 and len(feats):
             feats = refine_subpixel(gray, feats, self.cfg.subpixel_window_px)
         if scale < 1.0:
@@ -96,8 +98,15 @@ def north_angle_deg(R_ned_cam: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(north_cam[1], north_cam[0])) % 360.0)
 
 
-def detect(detector: cv2.ORB, image: np.ndarray, min_harris: float = 0.0, angle_deg: float | None = None) -> Features:
+def detect(
+    detector: cv2.ORB, image: np.ndarray, min_harris: float = 0.0, angle_deg: float | None = None, first: cv2.ORB | None = None
+) -> Features:
     """Detect and describe point features. An empty or featureless frame gives empty :class:`Features`.
+
+    With ``first`` (the same ORB at a higher FAST threshold), keypoints are taken from it when it finds the full
+    budget of ``nfeatures``, and from ``detector`` otherwise. ORB keeps the corners of highest FAST score, and a
+    higher threshold only drops weaker ones, so a frame rich in corners gets its strongest ones either way while
+    FAST, the largest part of ORB's time, tests fewer pixels; a frame poor in corners is detected as before.
 
     Keypoints whose Harris score is not above ``min_harris`` are dropped: a negative score marks a point on a
     straight edge, which slides along the edge from view to view and is no point landmark. With ``angle_deg``,
@@ -108,7 +117,10 @@ def detect(detector: cv2.ORB, image: np.ndarray, min_harris: float = 0.0, angle_
     gray = to_gray(image)
     if gray.size == 0:
         raise FrameError("frame is empty")
-    keypoints = [kp for kp in detector.detect(gray, None) if kp.response > min_harris]
+    keypoints = first.detect(gray, None) if first is not None else ()
+    if len(keypoints) < detector.getMaxFeatures():
+        keypoints = detector.detect(gray, None)
+    keypoints = [kp for kp in keypoints if kp.response > min_harris]
     if not keypoints:
         return Features.empty()
     if angle_deg is not None:

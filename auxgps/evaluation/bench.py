@@ -325,7 +325,7 @@ class _Run:
         self.map = landmarks
         self.localiser = Localiser(pipeline, parts.camera, parts.R_body_cam, landmarks)
         self.match_clock = _Clock()
-        for name in ("candidates", "_match_guided", "_match"):
+        for name in ("_match_guided", "_match"):
             setattr(self.localiser, name, self.match_clock.wrap(getattr(self.localiser, name)))
         self.nav = NavFilter(pipeline.fusion, 0.0, script.p0_ned_m, np.zeros(3), sim.noise.gps_horizontal_m * 2, 0.1)
         # The GPS_INPUT timer runs on its own clock (a thread of the companion), not locked to the camera's: the
@@ -373,13 +373,14 @@ def _replay_positioning(script: _PositioningScript, maps: list[LandmarkMap], pip
             c0 = time.thread_time()
             t0 = time.perf_counter()
             cand = run.localiser.candidates(tel.alt_m, prior)
+            tc = time.perf_counter()
             feats = parts.detector.detect(image, tel.R_ned_body @ parts.R_body_cam, run.localiser.detection_scale(tel.alt_m, prior, cand))
             t1 = time.perf_counter()
             res = run.localiser.locate(feats, t, tel.R_ned_body, tel.alt_m, prior, cand)
             t2 = time.perf_counter()
             rec.cpu_ms.append((time.thread_time() - c0) * 1e3)
-            matching = run.match_clock.take()
-            rec.rows.append({"detection": (t1 - t0) * 1e3, "matching": matching, "solving": (t2 - t1) * 1e3 - matching, "filtering": 0.0})
+            pairing = run.match_clock.take()  # inside locate
+            rec.rows.append({"detection": (t1 - tc) * 1e3, "matching": (tc - t0) * 1e3 + pairing, "solving": (t2 - t1) * 1e3 - pairing, "filtering": 0.0})
             rec.n_features.append(len(feats))
             rec.n_frames += 1
             if isinstance(res, Fix):
