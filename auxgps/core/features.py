@@ -104,9 +104,11 @@ def detect(
     """Detect and describe point features. An empty or featureless frame gives empty :class:`Features`.
 
     With ``first`` (the same ORB at a higher FAST threshold), keypoints are taken from it when it finds the full
-    budget of ``nfeatures``, and from ``detector`` otherwise. ORB keeps the corners of highest FAST score, and a
-    higher threshold only drops weaker ones, so a frame rich in corners gets its strongest ones either way while
-    FAST, the largest part of ORB's time, tests fewer pixels; a frame poor in corners is detected as before.
+    budget of ``nfeatures``, and from ``detector`` otherwise. Per pyramid level, ORB takes the corners of highest
+    FAST score (twice the level's share), then the best of those by Harris score; a higher threshold only drops
+    corners of lower FAST score. So when twice each level's share passes it (as on textured ground and real
+    photos), the features are the same, found in less time (FAST is the largest part of ORB's); when only the
+    share passes, they are strong corners still; a frame poor in corners is detected as before.
 
     Keypoints whose Harris score is not above ``min_harris`` are dropped: a negative score marks a point on a
     straight edge, which slides along the edge from view to view and is no point landmark. With ``angle_deg``,

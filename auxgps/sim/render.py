@@ -108,6 +108,8 @@ class Renderer:
             for cube in world.cubes
         ]
         self._vertices = world.all_vertices_ned()
+        # A plain ground is the same image in every frame: made once, copied per frame.
+        self._plain_ground = None if world.ground_texture_bgr is not None else np.full((H, W, 3), world.ground_color_bgr, np.uint8)
         self._distort_maps = self._make_distortion_maps() if camera.has_distortion else None
 
     def _make_distortion_maps(self) -> tuple[np.ndarray, np.ndarray]:
@@ -121,8 +123,8 @@ class Renderer:
     def _ground(self, pose: CameraPose) -> np.ndarray:
         W, H = self.camera.width_px, self.camera.height_px
         world = self.world
-        if world.ground_texture_bgr is None:
-            return np.full((H, W, 3), world.ground_color_bgr, np.uint8)
+        if self._plain_ground is not None:
+            return self._plain_ground.copy()
         R_cam_ned = pose.R_ned_cam.T
         H_img_ground = self._K @ np.column_stack([R_cam_ned[:, 0], R_cam_ned[:, 1], -R_cam_ned @ pose.p_cam_in_ned_m])
         th, tw = world.ground_texture_bgr.shape[:2]
@@ -134,12 +136,12 @@ class Renderer:
 
     def _ground_depth(self, pose: CameraPose) -> np.ndarray:
         """(H, W) float32 z-depth of the ground plane (down = 0) behind every ideal pixel; inf above the horizon."""
-        R = pose.R_ned_cam
-        ray_down = R[2, 0] * self._xn[None, :] + R[2, 1] * self._yn[:, None] + R[2, 2]
+        r = pose.R_ned_cam[2].astype(np.float32)
+        ray_down = r[0] * self._xn[None, :] + r[1] * self._yn[:, None] + r[2]
         with np.errstate(divide="ignore"):
-            z = (0.0 - pose.p_cam_in_ned_m[2]) / ray_down
+            z = np.float32(-pose.p_cam_in_ned_m[2]) / ray_down
         z[~(z > 0)] = np.inf
-        return z.astype(np.float32)
+        return z
 
     def render(
         self, pose: CameraPose, effects: ImageEffects | None = None, rng: np.random.Generator | None = None
@@ -184,25 +186,33 @@ class Renderer:
         if x1 <= x0 or y1 <= y0:
             return
         ss = self._SS
-        hi = np.zeros(((y1 - y0) * ss, (x1 - x0) * ss, 4), np.float32)  # premultiplied colour and coverage
-        z = np.full((y1 - y0, x1 - x0), -np.inf, np.float32)
-        for uv, quad, normal, color in polys:
+        h, w = y1 - y0, x1 - x0
+        label = np.zeros((h * ss, w * ss), np.uint8)  # which face covers each supersample (0: none)
+        z = np.full((h, w), -np.inf, np.float32)
+        for k, (uv, quad, normal, color) in enumerate(polys, start=1):
             # Pixel centres of the supersampled grid sit at (i + 0.5) / ss - 0.5 in full-size pixels.
             pts = np.rint(((uv - [x0, y0]) * ss + (ss - 1) / 2.0) * 16).astype(np.int32)
-            cv2.fillConvexPoly(hi, pts, (*color, 1.0), lineType=cv2.LINE_8, shift=4)
+            cv2.fillConvexPoly(label, pts, k, lineType=cv2.LINE_8, shift=4)
             # Depth of the face plane at each pixel centre; the cube's surface is the farthest front plane.
             nR = normal @ pose.R_ned_cam
             denom = nR[0] * self._xn[None, x0:x1] + nR[1] * self._yn[y0:y1, None] + nR[2]
             with np.errstate(divide="ignore", invalid="ignore"):
                 zf = (normal @ (quad[0] - pose.p_cam_in_ned_m)) / denom
             z = np.maximum(z, np.where(zf > 0, zf, -np.inf).astype(np.float32))
-        lo = cv2.resize(hi, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
-        alpha = lo[..., 3]
+        # Each face's coverage of each pixel (its share of the pixel's supersamples), and the premultiplied colour.
+        # A supersample weighs ss^2, so that the area average of a pixel's ss x ss block is the count, exactly.
+        colour = np.zeros((h, w, 3), np.float32)
+        alpha = np.zeros((h, w), np.float32)
+        for k, (_, _, _, color) in enumerate(polys, start=1):
+            weight = np.where(label == k, np.uint8(ss * ss), np.uint8(0))
+            cover = cv2.resize(weight, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32) / ss**2
+            colour += cover[..., None] * np.asarray(color, np.float32)
+            alpha += cover
         zpatch = zbuf[y0:y1, x0:x1]
         closer = (z > 0) & (z <= zpatch + 1e-3)
         a = alpha * closer
         patch = image[y0:y1, x0:x1].astype(np.float32)
-        patch = lo[..., :3] * closer[..., None] + (1.0 - a[..., None]) * patch
+        patch = colour * closer[..., None] + (1.0 - a[..., None]) * patch
         image[y0:y1, x0:x1] = np.clip(np.rint(patch), 0, 255).astype(np.uint8)
         zbuf[y0:y1, x0:x1] = np.where((alpha >= 0.5) & closer, z, zpatch)
 
@@ -221,7 +231,9 @@ class Renderer:
 
 
 def apply_effects(image: np.ndarray, effects: ImageEffects, rng: np.random.Generator | None) -> np.ndarray:
-    """Exposure gain, then blur, then Gaussian noise (seeded by ``rng``)."""
+    """Exposure gain, then blur, then Gaussian noise (seeded by ``rng``). No effect: ``image`` itself."""
+    if effects.exposure_gain == 1.0 and effects.blur_sigma_px <= 0 and effects.noise_sigma <= 0:
+        return image
     out = image.astype(np.float32)
     if effects.exposure_gain != 1.0:
         out *= effects.exposure_gain
