@@ -98,7 +98,8 @@ class MapPhoto:
 @dataclass(frozen=True)
 class SolvedPhoto:
     """A map photo's solved pose. ``gps_residual_ne_m`` (2,) solved minus GPS; ``yaw_vs_metadata_rad`` solved
-    camera heading minus the gimbal's (None without one)."""
+    camera heading minus the gimbal's (None without one); ``rms_px`` the reprojection RMS of its
+    ``n_observations`` kept observations (full-resolution px; None when not known, e.g. read from a map file)."""
 
     name: str
     p_cam_in_ned_m: np.ndarray
@@ -106,6 +107,7 @@ class SolvedPhoto:
     n_observations: int
     gps_residual_ne_m: np.ndarray | None
     yaw_vs_metadata_rad: float | None
+    rms_px: float | None = None
 
 
 @dataclass(frozen=True)
@@ -623,11 +625,15 @@ def _refine_points(model, cam_params, intr, X, photo, pt_idx, uv, sigma_px, iter
     return X, H, np.linalg.norm(err, axis=1)
 
 
-def build_photo_map(photos: list[MapPhoto], cfg, rng: np.random.Generator | None = None) -> PhotoMap:
+def build_photo_map(photos: list[MapPhoto], cfg, rng: np.random.Generator | None = None,
+                    init_gps_sigma_m: float | None = None) -> PhotoMap:
     """Build a :class:`PhotoMap` from photos with features and GPS priors (see the module docstring).
 
-    ``cfg`` is an :class:`auxgps.config.PhotoMapConfig`. Raises :class:`PhotoMapError` when too few photos
-    have GPS and overlap.
+    ``cfg`` is an :class:`auxgps.config.PhotoMapConfig`. ``init_gps_sigma_m``: the GPS's weight in the first
+    guess only (default ``cfg.gps_sigma_h_m``). The first guess weighs the overlaps' offsets against the GPS, and
+    only the GPS gives the block its size: with a very loose GPS prior there, it comes out shrunk (a 100 m prior
+    shrank Brighton Beach 78 times) and the bundle adjustment, which nothing pulls back, keeps it so. Raises
+    :class:`PhotoMapError` when too few photos have GPS and overlap.
     """
     rng = rng if rng is not None else np.random.default_rng(0)
     messages: list[str] = []
@@ -680,7 +686,7 @@ def build_photo_map(photos: list[MapPhoto], cfg, rng: np.random.Generator | None
     first_cam = {cid: next(p.camera for p in photos if p.camera_id == cid) for cid in cam_ids}
     cams = [p.camera for p in photos]
 
-    init = _initial_poses(photos, cams, pair_matches, cfg.gps_sigma_h_m)
+    init = _initial_poses(photos, cams, pair_matches, cfg.gps_sigma_h_m if init_gps_sigma_m is None else init_gps_sigma_m)
     if any(v is None for v in init):
         raise PhotoMapError("could not place every overlapping photo (degenerate overlaps)")
     R0 = np.array([v[0] for v in init])
@@ -769,7 +775,9 @@ def build_photo_map(photos: list[MapPhoto], cfg, rng: np.random.Generator | None
             yaw_diff = _wrap(camera_heading_rad(R[i]) - camera_heading_rad(p.prior.R_ned_cam))
             if abs(yaw_diff) > np.deg2rad(cfg.max_heading_disagreement_deg):
                 messages.append(f"{p.name}: pixels turned {np.degrees(yaw_diff):+.0f} deg from the metadata's camera heading")
-        solved.append(SolvedPhoto(p.name, C[i].copy(), R[i].copy(), int(np.sum(t_photo == i)), res_ne, yaw_diff))
+        mine = t_photo == i
+        rms_px = float(np.sqrt(np.mean(err[mine] ** 2))) if mine.any() else None
+        solved.append(SolvedPhoto(p.name, C[i].copy(), R[i].copy(), int(mine.sum()), res_ne, yaw_diff, rms_px))
     gps_res = np.array(gps_res)
     sigma_gps_obs = float(np.sqrt(np.mean(gps_res**2))) if len(gps_res) else cfg.gps_sigma_h_m
     georef = float(np.sqrt(max(sigma_gps_obs, cfg.gps_sigma_floor_m) ** 2 / len(gps_res) + cfg.gps_bias_sigma_m**2))
