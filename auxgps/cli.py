@@ -42,7 +42,9 @@ def summary_table(summary: dict) -> str:
     table = tabulate(rows, headers=["metric (m)", "count", "RMS", "median", "p95", "max"], tablefmt="simple")
     sc = summary["scenario"]
     lines = [
-        f"{Path(sc['world']).name} at {sc['altitude_m']:g} m, {sc['runs']} run(s) at {sc['fps']:g} frames/s, seeds {sc['seeds']}",
+        f"{Path(sc['world']).name} at {sc['altitude_m']:g} m, {sc['runs']} run(s) at {sc['fps']:g} frames/s"
+        + (f" (survey mapped at {sc['mapping_fps']:g})" if sc.get("mapping_fps", sc["fps"]) != sc["fps"] else "")
+        + f", seeds {sc['seeds']}",
         table,
         f"availability (frames with a whole cube in view that got a fix): {_fmt(fx['availability'])}"
         f"   fixes over 0.5 m: {fx['over_0_5m']}",
@@ -71,6 +73,7 @@ def _eval(args) -> int:
         args.world,
         args.altitude,
         fps=args.fps,
+        mapping_fps=args.mapping_fps,
         runs=args.runs,
         seed=args.seed,
         pipeline=load_pipeline_config(args.config),
@@ -271,6 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     def add_eval_options(p):
         p.add_argument("--fps", type=_positive(float), default=2.0, help="camera frames per second (default 2)")
+        p.add_argument("--mapping-fps", type=_positive(float), help="frames per second mapped in the survey (default: --fps)")
         p.add_argument("--seed", type=int, default=1, help="seed of the first run (default 1)")
         p.add_argument("--config", help="pipeline config YAML (default: built-in defaults)")
         p.add_argument("--sim-config", help="simulation config YAML (default: built-in defaults)")

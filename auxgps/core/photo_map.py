@@ -473,12 +473,14 @@ def _obs_jacobians(model, cam_params, intr, X, photo, pt_idx):
     return uv, J_cam, J_p @ Rt
 
 
-def _bundle_adjust(model, cam0, intr0, X0, photo, pt_idx, uv_obs, sigma_px, priors, refine_intrinsics, max_iterations):
+def _bundle_adjust(model, cam0, intr0, X0, photo, pt_idx, uv_obs, sigma_px, priors, refine_intrinsics, max_iterations,
+                   focal_sigma_rel):
     """Levenberg-Marquardt bundle adjustment with the points eliminated (Schur complement) and Huber weights.
 
     ``priors`` = (gps_idx, gps_ne (G, 2), gps_sigma, h_idx, h_val, h_sigma): each photo's GPS position and
-    height above the origin as soft constraints. Returns photo parameters (n, 6), intrinsics (c, 3) and
-    points (m, 3).
+    height above the origin as soft constraints. With ``refine_intrinsics``, each camera's focal length is held
+    to its starting value within ``focal_sigma_rel`` (relative, one sigma) and its distortion weakly to zero.
+    Returns photo parameters (n, 6), intrinsics (c, 3) and points (m, 3).
     """
     n, c, m = len(cam0), len(intr0), len(X0)
     gps_idx, gps_ne, gps_sigma, h_idx, h_val, h_sigma = priors
@@ -502,7 +504,7 @@ def _bundle_adjust(model, cam0, intr0, X0, photo, pt_idx, uv_obs, sigma_px, prio
         cost += float(np.sum(rg**2) / gps_sigma**2 + np.sum(rh**2) / h_sigma**2)
         k_sigma = 0.5 if refine_intrinsics else 1e-6  # distortion pulled weakly to zero; fixed when not refined
         for a in range(3):
-            sa = k_sigma if a > 0 else (10.0 if refine_intrinsics else 1e-6)
+            sa = k_sigma if a > 0 else (focal_sigma_rel if refine_intrinsics else 1e-6)  # intr[:, 0] is log(f / f0)
             g[6 * n + 3 * np.arange(c) + a] += intr[:, a] / sa**2
             H[6 * n + 3 * np.arange(c) + a] += 1.0 / sa**2
             cost += float(np.sum(intr[:, a] ** 2) / sa**2)
@@ -728,7 +730,7 @@ def build_photo_map(photos: list[MapPhoto], cfg, rng: np.random.Generator | None
     X_ba = X_all[ba_tracks]
     for gate in (cfg.init_outlier_sigma / 2.0, 3.0):
         cam_params, intr, X_ba = _bundle_adjust(model, cam_params, intr, X_ba, obs_photo, obs_pt, obs_uv, obs_sig,
-                                                priors, cfg.refine_intrinsics, cfg.max_ba_evaluations)
+                                                priors, cfg.refine_intrinsics, cfg.max_ba_evaluations, cfg.focal_sigma_rel)
         # Drop observations the solution cannot explain (a mismatched track, a moving object), then solve again.
         err = np.linalg.norm(_project_obs(model, cam_params, intr, X_ba, obs_photo, obs_pt) - obs_uv, axis=1)
         good = err <= gate * obs_sig

@@ -20,8 +20,8 @@ def _one(args) -> RunRecord:
     import cv2
 
     cv2.setNumThreads(1)
-    world_path, alt_m, fps, seed, pipeline, sim = args
-    return run_once(load_world(world_path), alt_m, fps, seed, pipeline, sim)
+    world_path, alt_m, fps, seed, pipeline, sim, mapping_fps = args
+    return run_once(load_world(world_path), alt_m, fps, seed, pipeline, sim, mapping_fps=mapping_fps)
 
 
 def evaluate(
@@ -35,10 +35,14 @@ def evaluate(
     sim: SimConfig,
     workers: int | None = None,
     progress: bool = True,
+    mapping_fps: float | None = None,
 ) -> dict:
-    """Fly ``runs`` seeded runs (seeds ``seed`` .. ``seed + runs - 1``) and return the pooled summary."""
+    """Fly ``runs`` seeded runs (seeds ``seed`` .. ``seed + runs - 1``) and return the pooled summary.
+
+    ``fps``: the positioning flight's frame rate; ``mapping_fps``: the survey's (default ``fps``)."""
     load_world(world_path)  # fail early, in this process, on a bad world file
-    jobs = [(str(world_path), alt_m, fps, seed + k, pipeline, sim) for k in range(runs)]
+    mapping_fps = mapping_fps or fps
+    jobs = [(str(world_path), alt_m, fps, seed + k, pipeline, sim, mapping_fps) for k in range(runs)]
     workers = max(1, min(workers or os.cpu_count() or 1, runs))
     desc = f"{Path(world_path).stem} @ {alt_m:g} m"
     if workers == 1:
@@ -51,6 +55,7 @@ def evaluate(
         "world": str(world_path),
         "altitude_m": alt_m,
         "fps": fps,
+        "mapping_fps": mapping_fps,
         "runs": runs,
         "seeds": [j[3] for j in jobs],
         "pipeline": asdict(pipeline),

@@ -122,8 +122,13 @@ def _map_flight(su: _Setup, alt_m: float, fps: float, progress) -> tuple[np.ndar
     return errors(used), errors(seen), mapping_ms
 
 
-def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: PipelineConfig, sim: SimConfig, progress=None) -> RunRecord:
+def run_once(
+    world: World, alt_m: float, fps: float, seed: int, pipeline: PipelineConfig, sim: SimConfig, progress=None, mapping_fps: float | None = None
+) -> RunRecord:
     """Fly the mapping survey, then the positioning flight, over ``world`` at ``alt_m``; score both.
+
+    ``fps`` is the positioning flight's frame rate; the survey is mapped at ``mapping_fps`` (default ``fps``):
+    a camera at 30 frames a second need not feed the mapper every frame, whose landmarks want a dozen views.
 
     The positioning flight has GPS for its first ``sim.denial.gps_until_s`` seconds, then none. The filter is
     driven by the IMU at its rate, the barometer and (while it lasts) GPS; every frame is located against the
@@ -131,7 +136,7 @@ def run_once(world: World, alt_m: float, fps: float, seed: int, pipeline: Pipeli
     the frame was captured. Only this function sees the truth, to score.
     """
     su = _Setup(world, pipeline, sim, seed)
-    lm_err, lm_err_seen, mapping_ms = _map_flight(su, alt_m, fps, progress)
+    lm_err, lm_err_seen, mapping_ms = _map_flight(su, alt_m, mapping_fps or fps, progress)
 
     traj = fly(lawnmower_waypoints(sim.positioning, alt_m), sim.positioning.speed_m_s, sim.vehicle, su.rng_fly_pos, sim.dt_s)
     noise, den = sim.noise, sim.denial
