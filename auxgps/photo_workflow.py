@@ -92,9 +92,11 @@ class MapBuildReport:
     messages: list[str] = field(default_factory=list)
 
 
-def build_map_from_photos(files: list[Path], cam_cfg: PhotoCameraConfig | None, cfg: PhotoConfig,
-                          progress: Callable[[str], None] | None = None) -> MapBuildReport:
-    """Read, detect and map ``files``. Photos that cannot be used are reported, not fatal."""
+def read_map_photos(files: list[Path], cam_cfg: PhotoCameraConfig | None, cfg: PhotoConfig,
+                    progress: Callable[[str], None] | None = None) -> tuple[list[PhotoMeta], LocalFrame, list[MapPhoto], list[str]]:
+    """Read and detect ``files`` for a map: the metadata and :class:`MapPhoto` of each usable photo (in the same
+    order), the map's anchor, and one message per photo left out or noted. Photos that cannot be used are
+    reported, not fatal; fewer than 2 usable ones with GPS is a :class:`PhotoError`."""
     messages: list[str] = []
     metas: list[PhotoMeta] = []
     for path in files:
@@ -111,7 +113,7 @@ def build_map_from_photos(files: list[Path], cam_cfg: PhotoCameraConfig | None, 
         raise PhotoError(f"a map needs at least 2 readable photos with GPS; usable: {len(metas)} of {len(files)}"
                          + (" (" + "; ".join(messages) + ")" if messages else ""))
     frame = map_origin(metas)
-    photos = []
+    used, photos = [], []
     for meta in metas:
         try:
             camera, note = camera_for_photo(meta, cam_cfg)
@@ -123,7 +125,15 @@ def build_map_from_photos(files: list[Path], cam_cfg: PhotoCameraConfig | None, 
             messages.append(f"{meta.path.name}: {note}")
         if progress is not None:
             progress(meta.path.name)
+        used.append(meta)
         photos.append(MapPhoto(meta.path.name, feats, camera, meta.camera_id, photo_prior(meta, frame, use_gps=True)))
+    return used, frame, photos, messages
+
+
+def build_map_from_photos(files: list[Path], cam_cfg: PhotoCameraConfig | None, cfg: PhotoConfig,
+                          progress: Callable[[str], None] | None = None) -> MapBuildReport:
+    """Read, detect and map ``files``. Photos that cannot be used are reported, not fatal."""
+    _, frame, photos, messages = read_map_photos(files, cam_cfg, cfg, progress)
     photo_map = build_photo_map(photos, cfg.map)
     messages.extend(photo_map.messages)
     return MapBuildReport(photo_map, frame, [p.name for p in photo_map.photos], messages)

@@ -44,9 +44,9 @@ from pathlib import Path
 import numpy as np
 
 from auxgps.config import load_photo_camera, load_photo_config
-from auxgps.core.photo_map import MapPhoto, PhotoPrior, build_photo_map
-from auxgps.io.photos import list_photos, read_photo_meta
-from auxgps.photo_workflow import _features, camera_for_photo, map_origin, photo_prior
+from auxgps.core.photo_map import PhotoPrior, build_photo_map
+from auxgps.io.photos import list_photos
+from auxgps.photo_workflow import read_map_photos
 
 
 # --------------------------------------------------------------------------------------------------- analysis
@@ -148,19 +148,14 @@ def along_cross(offset_ne_m: np.ndarray, heading_deg: float) -> tuple[float, flo
 # --------------------------------------------------------------------------------------------------- photos
 
 
-def load_photos(files: list[Path], cam_cfg, cfg, progress=None):
-    """Metadata, the local frame, and MapPhotos (features computed once) for photos with GPS, in capture order."""
-    metas = [read_photo_meta(f) for f in files]
-    metas = [m for m in metas if m.has_gps]
-    metas.sort(key=lambda m: (m.capture_time or datetime.min, m.path.name))  # capture order (else by name)
-    frame = map_origin(metas)
-    photos = []
-    for m in metas:
-        camera, _ = camera_for_photo(m, cam_cfg)
-        if progress:
-            progress(m.path.name)
-        photos.append(MapPhoto(m.path.name, _features(m, cfg), camera, m.camera_id, photo_prior(m, frame, use_gps=True)))
-    return metas, frame, photos
+def load_photos(files: list[Path], cam_cfg, cfg, say=print):
+    """The map builder's reading of ``files`` (:func:`read_map_photos`, its messages said): the MapPhotos
+    (features computed once) in capture order."""
+    metas, _, photos, messages = read_map_photos(files, cam_cfg, cfg)
+    for message in messages:
+        say(f"  {message}")
+    order = sorted(range(len(photos)), key=lambda i: (metas[i].capture_time or datetime.min, metas[i].path.name))  # else by name
+    return [photos[i] for i in order]
 
 
 def _vec(v) -> list:
@@ -169,7 +164,7 @@ def _vec(v) -> list:
 
 def run(files: list[Path], cam_cfg, cfg, *, gps_sigma_m: float, hold_out: int | None, max_turn_deg: float,
         say=print) -> dict:
-    metas, frame, photos = load_photos(files, cam_cfg, cfg)
+    photos = load_photos(files, cam_cfg, cfg, say)
     names = [p.name for p in photos]
     gps_ne_m = np.array([p.prior.gps_ne_m for p in photos])
     passes = group_passes(gps_ne_m, max_turn_deg)
