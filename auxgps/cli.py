@@ -30,6 +30,10 @@ def _fmt(x, unit="") -> str:
     return f"{x}{unit}"
 
 
+def _fmt_s(x: float | None) -> str:
+    return "-" if x is None else f"{x:.1f} s"
+
+
 def summary_table(summary: dict) -> str:
     """The on-screen table of one scenario's pooled figures."""
     lm, fx, ma, ms = summary["landmarks"], summary["fixes"], summary["mission_average"], summary["per_frame_ms"]
@@ -52,6 +56,8 @@ def summary_table(summary: dict) -> str:
         f"{_fmt(fu['within_3sigma'])}; fixes gated {summary['gate']['rejected']}, accepted over 0.5 m "
         f"{summary['gate']['accepted_over_0_5m']}, re-initialisations {summary['gate']['reinitialisations']}; "
         f"GPS-denied {summary['denied_s']:.0f} s",
+        f"dead reckoning: longest stretch without an accepted fix {_fmt_s(fu['longest_gap_s'])}; the fused maximum"
+        f" came {_fmt_s(fu['since_fix_at_max_s'])} after one",
         f"thesis-style mission averages: landmark {_fmt(ma['landmark_m'], ' m')}, position {_fmt(ma['position_m'], ' m')}",
         f"time per frame: median {_fmt(ms['median'], ' ms')}, p99 {_fmt(ms['p99'], ' ms')}"
         f" (features per frame: {summary['features_per_frame_median']:.0f})",

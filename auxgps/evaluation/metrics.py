@@ -26,15 +26,27 @@ def _mean_abs_ne(err_ne: np.ndarray) -> float | None:
     return float(np.hypot(*np.mean(np.abs(err_ne), axis=0)))
 
 
+def _since_accepted_fix_s(r: RunRecord) -> np.ndarray:
+    """(O,) seconds from the capture of the last accepted fix (or from the loss of GPS) to each fused output."""
+    t_ref = np.concatenate([[r.denied_from_s], np.sort(r.fix_t_s[~r.fix_gated])])
+    k = np.searchsorted(t_ref, r.fused_t_s, side="right") - 1  # outputs are all while denied: k >= 0
+    return r.fused_t_s - t_ref[k]
+
+
 def _fused(records: list[RunRecord]) -> dict:
-    """The filter's output while denied: horizontal error, and its consistency with the reported covariance."""
+    """The filter's output while denied: horizontal error, and its consistency with the reported covariance.
+
+    And what explains a maximum: the longest stretch without an accepted fix (dead reckoning on the IMU alone),
+    and how long the output at the maximum had gone without one."""
     err = np.vstack([r.fused_err_ne_m for r in records])
     cov = np.concatenate([r.fused_cov_ne_m2 for r in records])
     if len(err) == 0:
-        return {"count": 0, "rms_m": None, "p95_m": None, "max_m": None, "nees_mean": None, "within_3sigma": None}
+        return {"count": 0, "rms_m": None, "p95_m": None, "max_m": None, "nees_mean": None, "within_3sigma": None,
+                "longest_gap_s": None, "since_fix_at_max_s": None}
     e = np.linalg.norm(err, axis=1)
     nees = np.einsum("ni,nij,nj->n", err, np.linalg.inv(cov), err)  # 2 degrees of freedom: 2 expected
     sigma_worst = np.sqrt(np.linalg.eigvalsh(cov)[:, -1])  # the horizontal accuracy auxgps reports
+    since = np.concatenate([_since_accepted_fix_s(r) for r in records])
     return {
         "count": int(len(e)),
         "rms_m": float(np.sqrt(np.mean(e**2))),
@@ -42,6 +54,8 @@ def _fused(records: list[RunRecord]) -> dict:
         "max_m": float(e.max()),
         "nees_mean": float(np.mean(nees)),
         "within_3sigma": float(np.mean(e <= 3.0 * sigma_worst)),
+        "longest_gap_s": float(since.max()),
+        "since_fix_at_max_s": float(since[np.argmax(e)]),
     }
 
 

@@ -42,6 +42,8 @@ class RunRecord:
     fused_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (O,) output times while denied
     fused_err_ne_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     fused_cov_ne_m2: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    fix_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (F,) capture time of each fix
+    denied_from_s: float = 0.0  # when GPS was lost
     denied_s: float = 0.0
     blackout_s: tuple[float, float] | None = None  # (start, end) of a camera blackout, s
     n_reinit: int = 0
@@ -148,7 +150,7 @@ def run_once(
     nav = NavFilter(pipeline.fusion, 0.0, traj.p_ned_m[0] + su.rng_tel.standard_normal(3) * noise.gps_horizontal_m, np.zeros(3), noise.gps_horizontal_m * 2, 0.1)
 
     pending: list[tuple[float, Fix, int]] = []  # (delivery time, fix, its index in fix_err)
-    fix_err, fix_sigma, fix_gated, pos_ms, n_feat = [], [], [], [], []
+    fix_t, fix_err, fix_sigma, fix_gated, pos_ms, n_feat = [], [], [], [], [], []
     fused_t, fused_err, fused_cov = [], [], []
     reasons: dict[str, int] = {}
     n_elig = n_elig_fixed = n_frames = 0
@@ -187,6 +189,7 @@ def run_once(
             if isinstance(res, Fix):
                 n_elig_fixed += eligible
                 err = res.p_ned_m[:2] - traj.p_ned_m[i, :2]
+                fix_t.append(t)
                 fix_err.append(err)
                 fix_sigma.append(res.sigma_h_m)
                 fix_gated.append(False)
@@ -215,6 +218,8 @@ def run_once(
         fused_t_s=np.array(fused_t),
         fused_err_ne_m=np.array(fused_err).reshape(-1, 2),
         fused_cov_ne_m2=np.array(fused_cov).reshape(-1, 2, 2),
+        fix_t_s=np.array(fix_t),
+        denied_from_s=float(den.gps_until_s),
         denied_s=float(traj.duration_s - den.gps_until_s),
         blackout_s=(blackout[0], blackout[1]) if blackout[0] is not None else None,
         n_reinit=nav.n_reinit,

@@ -1,0 +1,60 @@
+"""Evaluation figures on hand-made run records: known answers."""
+
+import numpy as np
+import pytest
+
+from auxgps.evaluation.metrics import summarize
+from auxgps.evaluation.scenario import RunRecord
+
+
+def record(fused_t_s, fused_err_ne_m, fused_sigma_m, fix_t_s, fix_gated, denied_from_s=10.0, seed=1):
+    n_fix = len(fix_t_s)
+    return RunRecord(
+        seed=seed,
+        landmark_err_ne_m=np.zeros((1, 2)),
+        landmark_seen_err_ne_m=np.zeros((1, 2)),
+        fix_err_ne_m=np.full((n_fix, 2), 0.1),
+        fix_sigma_h_m=np.full(n_fix, 0.1),
+        fix_gated=np.array(fix_gated, bool),
+        n_eligible_frames=n_fix,
+        n_eligible_fixed=n_fix,
+        n_positioning_frames=n_fix,
+        fused_t_s=np.asarray(fused_t_s, float),
+        fused_err_ne_m=np.asarray(fused_err_ne_m, float),
+        fused_cov_ne_m2=np.array([np.eye(2) * s**2 for s in fused_sigma_m]),
+        fix_t_s=np.asarray(fix_t_s, float),
+        denied_from_s=denied_from_s,
+        denied_s=10.0,
+        mapping_ms=np.ones(1),
+        positioning_ms=np.ones(n_fix),
+        features_per_frame=np.full(n_fix, 100),
+    )
+
+
+def test_fused_consistency_known_answers():
+    """Errors (0.3, 0.4) and (0, 0.1) against a 0.1 m sigma: NEES 25 and 1, and only the second inside 3 sigma."""
+    r = record([10.0, 10.1], [[0.3, 0.4], [0.0, 0.1]], [0.1, 0.1], [10.0], [False])
+    fused = summarize([r])["fused"]
+    assert fused["nees_mean"] == pytest.approx(13.0)
+    assert fused["within_3sigma"] == pytest.approx(0.5)
+    assert fused["max_m"] == pytest.approx(0.5)
+    assert fused["rms_m"] == pytest.approx(np.sqrt((0.25 + 0.01) / 2))
+
+
+def test_gap_figures_count_accepted_fixes_only():
+    """GPS lost at 10 s; fixes at 11 s (accepted), 13 s (gated out) and 16 s (accepted); outputs every second to
+    18 s, the worst error at 15 s. The gated fix does not end the gap: the longest is 11 -> 16 s, and the
+    maximum came 4 s after the last accepted fix."""
+    t = np.arange(10.0, 18.5, 1.0)
+    err = np.zeros((len(t), 2))
+    err[t == 15.0] = [0.0, 0.6]
+    r = record(t, err, np.full(len(t), 0.1), [11.0, 13.0, 16.0], [False, True, False])
+    fused = summarize([r])["fused"]
+    assert fused["longest_gap_s"] == pytest.approx(4.0)  # measured at the outputs: 15 s is the last before 16 s
+    assert fused["since_fix_at_max_s"] == pytest.approx(4.0)
+
+
+def test_gap_from_the_loss_of_gps_when_no_fix_is_accepted():
+    t = np.arange(10.0, 13.5, 0.5)
+    r = record(t, np.zeros((len(t), 2)), np.full(len(t), 0.1), [11.0], [True])
+    assert summarize([r])["fused"]["longest_gap_s"] == pytest.approx(3.0)
