@@ -69,3 +69,14 @@ def test_cli_prints_one_line_and_exits_1(tmp_path):
     )
     assert proc.returncode == 1
     assert proc.stderr.strip().count("\n") == 0 and "size_m" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_every_shipped_sim_config_loads_and_changes_only_what_it_says():
+    from auxgps.sim.flight import SimConfig, load_sim_config
+
+    sim_dir = WORLDS.parent / "sim"
+    loaded = {f.name: load_sim_config(f) for f in sorted(sim_dir.glob("*.yaml"))}
+    assert {"blackout.yaml", "quiet_accelerometer.yaml"} <= set(loaded)
+    quiet, default = loaded["quiet_accelerometer.yaml"], SimConfig()
+    assert quiet.noise.accel_noise_m_s2 == 0.0
+    assert quiet.noise.accel_bias_m_s2 == default.noise.accel_bias_m_s2 and quiet.denial == default.denial
