@@ -7,8 +7,8 @@ from auxgps.evaluation.metrics import summarize
 from auxgps.evaluation.scenario import RunRecord
 
 
-def record(fused_t_s, fused_err_ne_m, fused_sigma_m, fix_t_s, fix_gated, denied_from_s=10.0, seed=1):
-    n_fix = len(fix_t_s)
+def record(fused_t_s, fused_err_ne_m, fused_sigma_m, fix_applied_t_s, fix_gated, denied_from_s=10.0, seed=1):
+    n_fix = len(fix_applied_t_s)
     return RunRecord(
         seed=seed,
         landmark_err_ne_m=np.zeros((1, 2)),
@@ -22,7 +22,7 @@ def record(fused_t_s, fused_err_ne_m, fused_sigma_m, fix_t_s, fix_gated, denied_
         fused_t_s=np.asarray(fused_t_s, float),
         fused_err_ne_m=np.asarray(fused_err_ne_m, float),
         fused_cov_ne_m2=np.array([np.eye(2) * s**2 for s in fused_sigma_m]),
-        fix_t_s=np.asarray(fix_t_s, float),
+        fix_applied_t_s=np.asarray(fix_applied_t_s, float),
         denied_from_s=denied_from_s,
         denied_s=10.0,
         mapping_ms=np.ones(1),
@@ -42,13 +42,13 @@ def test_fused_consistency_known_answers():
 
 
 def test_gap_figures_count_accepted_fixes_only():
-    """GPS lost at 10 s; fixes at 11 s (accepted), 13 s (gated out) and 16 s (accepted); outputs every second to
-    18 s, the worst error at 15 s. The gated fix does not end the gap: the longest is 11 -> 16 s, and the
-    maximum came 4 s after the last accepted fix."""
+    """GPS lost at 10 s; fixes given to the filter at 11 s (accepted), 13 s (gated out) and 16 s (accepted), and
+    one captured too late to reach it (NaN); outputs every second to 18 s, the worst error at 15 s. The gated fix
+    does not end the gap: the longest is 11 -> 16 s, and the maximum came 4 s after the last accepted fix."""
     t = np.arange(10.0, 18.5, 1.0)
     err = np.zeros((len(t), 2))
     err[t == 15.0] = [0.0, 0.6]
-    r = record(t, err, np.full(len(t), 0.1), [11.0, 13.0, 16.0], [False, True, False])
+    r = record(t, err, np.full(len(t), 0.1), [11.0, 13.0, 16.0, np.nan], [False, True, False, False])
     fused = summarize([r])["fused"]
     assert fused["longest_gap_s"] == pytest.approx(4.0)  # measured at the outputs: 15 s is the last before 16 s
     assert fused["since_fix_at_max_s"] == pytest.approx(4.0)

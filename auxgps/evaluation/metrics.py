@@ -27,8 +27,10 @@ def _mean_abs_ne(err_ne: np.ndarray) -> float | None:
 
 
 def _since_accepted_fix_s(r: RunRecord) -> np.ndarray:
-    """(O,) seconds from the capture of the last accepted fix (or from the loss of GPS) to each fused output."""
-    t_ref = np.concatenate([[r.denied_from_s], np.sort(r.fix_t_s[~r.fix_gated])])
+    """(O,) seconds from the last accepted fix's arrival at the filter (or from the loss of GPS) to each fused
+    output: how long the output had been carried on the IMU alone."""
+    applied = r.fix_applied_t_s[~r.fix_gated]
+    t_ref = np.concatenate([[r.denied_from_s], np.sort(applied[np.isfinite(applied)])])
     k = np.searchsorted(t_ref, r.fused_t_s, side="right") - 1  # outputs are all while denied: k >= 0
     return r.fused_t_s - t_ref[k]
 

@@ -42,7 +42,7 @@ class RunRecord:
     fused_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (O,) output times while denied
     fused_err_ne_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     fused_cov_ne_m2: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
-    fix_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (F,) capture time of each fix
+    fix_applied_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (F,) when the filter got each fix (NaN: never)
     denied_from_s: float = 0.0  # when GPS was lost
     denied_s: float = 0.0
     blackout_s: tuple[float, float] | None = None  # (start, end) of a camera blackout, s
@@ -150,7 +150,7 @@ def run_once(
     nav = NavFilter(pipeline.fusion, 0.0, traj.p_ned_m[0] + su.rng_tel.standard_normal(3) * noise.gps_horizontal_m, np.zeros(3), noise.gps_horizontal_m * 2, 0.1)
 
     pending: list[tuple[float, Fix, int]] = []  # (delivery time, fix, its index in fix_err)
-    fix_t, fix_err, fix_sigma, fix_gated, pos_ms, n_feat = [], [], [], [], [], []
+    fix_applied, fix_err, fix_sigma, fix_gated, pos_ms, n_feat = [], [], [], [], [], []
     fused_t, fused_err, fused_cov = [], [], []
     reasons: dict[str, int] = {}
     n_elig = n_elig_fixed = n_frames = 0
@@ -170,6 +170,7 @@ def run_once(
             _, fix, k = pending.pop(0)
             decision = nav.update_position(fix.t_s, fix.p_ned_m[:2], fix.cov_ned_m2[:2, :2], visual=True)
             fix_gated[k] = not decision.accepted
+            fix_applied[k] = t
         if i % frame_every == 0 and denied:
             tel = sense(traj, i, noise, su.rng_tel, gps_ok=False)
             frame = su.render(traj, i)
@@ -189,7 +190,7 @@ def run_once(
             if isinstance(res, Fix):
                 n_elig_fixed += eligible
                 err = res.p_ned_m[:2] - traj.p_ned_m[i, :2]
-                fix_t.append(t)
+                fix_applied.append(np.nan)
                 fix_err.append(err)
                 fix_sigma.append(res.sigma_h_m)
                 fix_gated.append(False)
@@ -218,7 +219,7 @@ def run_once(
         fused_t_s=np.array(fused_t),
         fused_err_ne_m=np.array(fused_err).reshape(-1, 2),
         fused_cov_ne_m2=np.array(fused_cov).reshape(-1, 2, 2),
-        fix_t_s=np.array(fix_t),
+        fix_applied_t_s=np.array(fix_applied, float),
         denied_from_s=float(den.gps_until_s),
         denied_s=float(traj.duration_s - den.gps_until_s),
         blackout_s=(blackout[0], blackout[1]) if blackout[0] is not None else None,
