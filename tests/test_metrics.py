@@ -58,3 +58,11 @@ def test_gap_from_the_loss_of_gps_when_no_fix_is_accepted():
     t = np.arange(10.0, 13.5, 0.5)
     r = record(t, np.zeros((len(t), 2)), np.full(len(t), 0.1), [11.0], [True])
     assert summarize([r])["fused"]["longest_gap_s"] == pytest.approx(3.0)
+
+
+def test_only_fixes_the_filter_kept_count_as_accepted():
+    """Three fixes 0.6 m off: one kept, one gated out, one that never reached the filter (NaN arrival)."""
+    r = record([10.0, 10.1], np.zeros((2, 2)), [0.1, 0.1], [10.0, 10.05, np.nan], [False, True, False])
+    r.fix_err_ne_m[:] = [0.0, 0.6]
+    gate = summarize([r])["gate"]
+    assert gate["accepted_over_0_5m"] == 1 and gate["rejected"] == 1

@@ -124,6 +124,8 @@ def _summarize_pooled(records: list[RunRecord]) -> dict:
     map_ms = np.concatenate([r.mapping_ms for r in records])
     fused = _fused(records)
     gated = np.concatenate([r.fix_gated for r in records])
+    # Accepted: given to the filter and kept by its gate (a fix captured in a flight's last moments never arrives).
+    accepted = ~gated & np.isfinite(np.concatenate([r.fix_applied_t_s for r in records]))
     reasons: dict[str, int] = {}
     for r in records:
         for k, v in r.no_fix_reasons.items():
@@ -140,7 +142,7 @@ def _summarize_pooled(records: list[RunRecord]) -> dict:
         "fused": fused,
         "gate": {
             "rejected": int(gated.sum()),
-            "accepted_over_0_5m": int(np.sum(~gated & (np.linalg.norm(fix_ne, axis=1) > 0.5))),
+            "accepted_over_0_5m": int(np.sum(accepted & (np.linalg.norm(fix_ne, axis=1) > 0.5))),
             "reinitialisations": int(sum(r.n_reinit for r in records)),
         },
         "denied_s": float(np.mean([r.denied_s for r in records])),
