@@ -22,16 +22,12 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 DEMO_WORLD = CONFIG_DIR / "worlds" / "cubes4_0.5m_different.yaml"
 
 
-def _fmt(x, unit="") -> str:
+def _fmt(x, unit="", digits=3) -> str:
     if x is None:
         return "-"
     if isinstance(x, float):
-        return f"{x:.3f}{unit}"
+        return f"{x:.{digits}f}{unit}"
     return f"{x}{unit}"
-
-
-def _fmt_s(x: float | None) -> str:
-    return "-" if x is None else f"{x:.1f} s"
 
 
 def summary_table(summary: dict) -> str:
@@ -56,8 +52,8 @@ def summary_table(summary: dict) -> str:
         f"{_fmt(fu['within_3sigma'])}; fixes gated {summary['gate']['rejected']}, accepted over 0.5 m "
         f"{summary['gate']['accepted_over_0_5m']}, re-initialisations {summary['gate']['reinitialisations']}; "
         f"GPS-denied {summary['denied_s']:.0f} s",
-        f"dead reckoning: longest stretch without an accepted fix {_fmt_s(fu['longest_gap_s'])}; the fused maximum"
-        f" came {_fmt_s(fu['since_fix_at_max_s'])} after one",
+        f"dead reckoning: longest stretch without an accepted fix {_fmt(fu['longest_gap_s'], ' s', 1)}; the fused maximum"
+        f" came {_fmt(fu['since_fix_at_max_s'], ' s', 1)} after one",
         f"thesis-style mission averages: landmark {_fmt(ma['landmark_m'], ' m')}, position {_fmt(ma['position_m'], ' m')}",
         f"time per frame: median {_fmt(ms['median'], ' ms')}, p99 {_fmt(ms['p99'], ' ms')}"
         f" (features per frame: {summary['features_per_frame_median']:.0f})",

@@ -29,8 +29,7 @@ def _mean_abs_ne(err_ne: np.ndarray) -> float | None:
 def _since_accepted_fix_s(r: RunRecord) -> np.ndarray:
     """(O,) seconds from the last accepted fix's arrival at the filter (or from the loss of GPS) to each fused
     output: how long the output had been carried on the IMU alone."""
-    applied = r.fix_applied_t_s[~r.fix_gated]
-    t_ref = np.concatenate([[r.denied_from_s], np.sort(applied[np.isfinite(applied)])])
+    t_ref = np.concatenate([[r.denied_from_s], np.sort(r.fix_applied_t_s[r.fix_accepted])])
     k = np.searchsorted(t_ref, r.fused_t_s, side="right") - 1  # outputs are all while denied: k >= 0
     return r.fused_t_s - t_ref[k]
 
@@ -124,8 +123,7 @@ def _summarize_pooled(records: list[RunRecord]) -> dict:
     map_ms = np.concatenate([r.mapping_ms for r in records])
     fused = _fused(records)
     gated = np.concatenate([r.fix_gated for r in records])
-    # Accepted: given to the filter and kept by its gate (a fix captured in a flight's last moments never arrives).
-    accepted = ~gated & np.isfinite(np.concatenate([r.fix_applied_t_s for r in records]))
+    accepted = np.concatenate([r.fix_accepted for r in records])
     reasons: dict[str, int] = {}
     for r in records:
         for k, v in r.no_fix_reasons.items():

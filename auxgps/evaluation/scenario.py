@@ -53,6 +53,12 @@ class RunRecord:
     features_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0))
     no_fix_reasons: dict[str, int] = field(default_factory=dict)
 
+    @property
+    def fix_accepted(self) -> np.ndarray:
+        """(F,) bool: given to the filter and kept by its gate (a fix captured in a flight's last moments never
+        arrives)."""
+        return ~self.fix_gated & np.isfinite(self.fix_applied_t_s)
+
 
 def _cube_fully_in_view(world: World, camera: PinholeCamera, pose: CameraPose) -> bool:
     if not world.cubes:
