@@ -56,7 +56,7 @@ def summary_table(summary: dict) -> str:
         f" came {_fmt(fu['since_fix_at_max_s'], ' s', 1)} after one",
         f"thesis-style mission averages: landmark {_fmt(ma['landmark_m'], ' m')}, position {_fmt(ma['position_m'], ' m')}",
         f"time per frame: median {_fmt(ms['median'], ' ms')}, p99 {_fmt(ms['p99'], ' ms')}"
-        f" (features per frame: {summary['features_per_frame_median']:.0f})",
+        f" (features per frame: {_fmt(summary['features_per_frame_median'], '', 0)})",
     ]
     if summary.get("blackout"):
         b = summary["blackout"]

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from auxgps.cli import summary_table
 from auxgps.evaluation.metrics import summarize
 from auxgps.evaluation.scenario import RunRecord
 
@@ -66,3 +67,13 @@ def test_only_fixes_the_filter_kept_count_as_accepted():
     r.fix_err_ne_m[:] = [0.0, 0.6]
     gate = summarize([r])["gate"]
     assert gate["accepted_over_0_5m"] == 1 and gate["rejected"] == 1
+
+
+def test_a_run_without_positioning_frames_is_summarised_and_printed():
+    """A flight whose denied part produced no frame (no features, no fixes): its figures are absent, not NaN,
+    and the on-screen table prints them as '-'."""
+    r = record([10.0, 10.1], np.zeros((2, 2)), [0.1, 0.1], [], [])
+    summary = summarize([r])
+    assert summary["features_per_frame_median"] is None
+    summary["scenario"] = {"world": "w.yaml", "altitude_m": 15.0, "runs": 1, "fps": 2.0, "seeds": [1]}
+    assert "(features per frame: -)" in summary_table(summary)

@@ -119,6 +119,7 @@ def _summarize_pooled(records: list[RunRecord]) -> dict:
     fx["eligible_frames"] = int(n_elig)
     fx["positioning_frames"] = int(sum(r.n_positioning_frames for r in records))
     all_ms = np.concatenate([np.concatenate([r.mapping_ms, r.positioning_ms]) for r in records])
+    n_feat = np.concatenate([r.features_per_frame for r in records])
     pos_ms = np.concatenate([r.positioning_ms for r in records])
     map_ms = np.concatenate([r.mapping_ms for r in records])
     fused = _fused(records)
@@ -151,6 +152,6 @@ def _summarize_pooled(records: list[RunRecord]) -> dict:
             "mapping_median": float(np.median(map_ms)) if len(map_ms) else None,
             "positioning_median": float(np.median(pos_ms)) if len(pos_ms) else None,
         },
-        "features_per_frame_median": float(np.median(np.concatenate([r.features_per_frame for r in records]))),
+        "features_per_frame_median": float(np.median(n_feat)) if len(n_feat) else None,
         "no_fix_reasons": reasons,
     }
