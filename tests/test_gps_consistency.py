@@ -105,3 +105,8 @@ def test_brighton_block(tmp_path):
     assert middle["mean_offset_ne_m"][0] < -0.3
     assert middle["max_dist_m"] < 1.5
     assert r["all_gps"]["within_pass_rms_m"] < 0.5
+
+
+def test_hold_out_bare_needs_a_pass_to_hold_out():
+    with pytest.raises(SystemExit):
+        gc.main(["--images", str(BRIGHTON), "--hold-out-bare"])

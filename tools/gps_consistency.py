@@ -1,7 +1,7 @@
 """Are the photos' GPS positions consistent with each other? Ask the photos.
 
     python tools/gps_consistency.py --images DIR [--only GLOB] [--camera CFG] [--config PHOTO_YAML]
-        [--gps-sigma-m 100] [--hold-out PASS] [--json OUT]
+        [--gps-sigma-m 100] [--hold-out PASS [--hold-out-bare]] [--json OUT]
 
 1. One photogrammetric block of ALL the given photos, built by the map builder
    (:func:`auxgps.core.photo_map.build_photo_map`) with the GPS prior made so loose (``--gps-sigma-m``, default
@@ -19,7 +19,9 @@
    left is the middle pass against the line between the outer two (seen from either side, doubled).
 4. ``--hold-out PASS`` (1-based): also a full joint adjustment with the configured GPS prior
    (``map.gps_sigma_h_m``, default 1 m) on every photo except that pass's, which gets no GPS prior at all; the
-   held-out photos' solved positions are compared with their own GPS (what ``auxgps locate`` scores).
+   held-out photos' solved positions are compared with their own GPS (what ``auxgps locate`` scores). With
+   ``--hold-out-bare`` those photos get no height or attitude prior either (as ``auxgps locate`` on stripped
+   photos).
 
 The block's shape leans on the intrinsics: a flat scene barely fixes the focal length, and a wrong one bends the
 passes against each other. Compare with ``--config`` holding ``map: {refine_intrinsics: false}`` (the camera
@@ -163,7 +165,7 @@ def _vec(v) -> list:
 
 
 def run(files: list[Path], cam_cfg, cfg, *, gps_sigma_m: float, hold_out: int | None, max_turn_deg: float,
-        say=print) -> dict:
+        hold_out_bare: bool = False, say=print) -> dict:
     photos = load_photos(files, cam_cfg, cfg, say)
     names = [p.name for p in photos]
     gps_ne_m = np.array([p.prior.gps_ne_m for p in photos])
@@ -248,9 +250,11 @@ def run(files: list[Path], cam_cfg, cfg, *, gps_sigma_m: float, hold_out: int | 
         if not 1 <= hold_out <= len(passes):
             raise SystemExit(f"--hold-out {hold_out}: there are {len(passes)} passes")
         idx = passes[hold_out - 1]
-        mixed = [replace(p, prior=PhotoPrior(None, p.prior.height_m, p.prior.R_ned_cam)) if i in idx else p
-                 for i, p in enumerate(photos)]
-        say(f"\njoint adjustment: GPS prior {cfg.map.gps_sigma_h_m:g} m on every photo but pass {hold_out}'s (none on those)")
+        bare = PhotoPrior()
+        mixed = [replace(p, prior=bare if hold_out_bare else PhotoPrior(None, p.prior.height_m, p.prior.R_ned_cam))
+                 if i in idx else p for i, p in enumerate(photos)]
+        say(f"\njoint adjustment: GPS prior {cfg.map.gps_sigma_h_m:g} m on every photo but pass {hold_out}'s (none on those"
+            + (", nor height or attitude)" if hold_out_bare else ")"))
         pj = build_photo_map(mixed, cfg.map)
         sj = {p.name: p for p in pj.photos}
         for cid, cam in pj.cameras.items():
@@ -270,7 +274,7 @@ def run(files: list[Path], cam_cfg, cfg, *, gps_sigma_m: float, hold_out: int | 
         mean = rows.mean(axis=0)
         say(f"  held-out pass: mean {mean[0]:+.2f} N {mean[1]:+.2f} E, median distance {np.median(d):.2f} m, "
             f"max {d.max():.2f} m; the other photos vs their GPS: RMS {np.sqrt(np.mean(np.sum(np.square(ref), axis=1))):.2f} m")
-        result["joint_hold_out"] = {"pass": hold_out, "gps_sigma_m": cfg.map.gps_sigma_h_m,
+        result["joint_hold_out"] = {"pass": hold_out, "bare": hold_out_bare, "gps_sigma_m": cfg.map.gps_sigma_h_m,
                                     "offset_ne_m": [_vec(v) for v in rows], "mean_offset_ne_m": _vec(mean),
                                     "median_dist_m": round(float(np.median(d)), 4), "max_dist_m": round(float(d.max()), 4)}
     return result
@@ -284,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", help="photo settings YAML (as auxgps map build); default: the defaults")
     ap.add_argument("--gps-sigma-m", type=float, default=100.0, help="the block's GPS prior, m per axis (default 100: placement only)")
     ap.add_argument("--hold-out", type=int, help="also a joint adjustment without this pass's GPS (1-based)")
+    ap.add_argument("--hold-out-bare", action="store_true", help="and without its height and attitude metadata too")
     ap.add_argument("--max-turn-deg", type=float, default=45.0, help="a turn larger than this starts a new pass")
     ap.add_argument("--json", help="write the numbers here")
     args = ap.parse_args(argv)
@@ -292,8 +297,10 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_photo_config(args.config)
     cam_cfg = load_photo_camera(args.camera) if args.camera else None
     files = list_photos(args.images, args.only)
+    if args.hold_out_bare and args.hold_out is None:
+        ap.error("--hold-out-bare needs --hold-out")
     result = run(files, cam_cfg, cfg, gps_sigma_m=args.gps_sigma_m, hold_out=args.hold_out, max_turn_deg=args.max_turn_deg,
-                 say=lambda s: print(s, flush=True))
+                 hold_out_bare=args.hold_out_bare, say=lambda s: print(s, flush=True))
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1))
         print(f"\nwrote {args.json}")
