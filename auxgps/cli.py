@@ -53,7 +53,9 @@ def summary_table(summary: dict) -> str:
         f"{summary['gate']['accepted_over_0_5m']}, re-initialisations {summary['gate']['reinitialisations']}; "
         f"GPS-denied {summary['denied_s']:.0f} s",
         f"dead reckoning: longest stretch without an accepted fix {_fmt(fu['longest_gap_s'], ' s', 1)}; the fused maximum"
-        f" came {_fmt(fu['since_fix_at_max_s'], ' s', 1)} after one",
+        f" came {_fmt(fu['since_fix_at_max_s'], ' s', 1)} after one; velocity error as {fu['long_gaps']['count']} stretches"
+        f" of {fu['long_gaps']['min_s']:g} s or more began: RMS {_fmt(fu['long_gaps']['velocity_error_rms_m_s'], ' m/s')},"
+        f" max {_fmt(fu['long_gaps']['velocity_error_max_m_s'], ' m/s')}",
         f"thesis-style mission averages: landmark {_fmt(ma['landmark_m'], ' m')}, position {_fmt(ma['position_m'], ' m')}",
         f"time per frame: median {_fmt(ms['median'], ' ms')}, p99 {_fmt(ms['p99'], ' ms')}"
         f" (features per frame: {_fmt(summary['features_per_frame_median'], '', 0)})",

@@ -8,8 +8,11 @@ from auxgps.evaluation.metrics import summarize
 from auxgps.evaluation.scenario import RunRecord
 
 
-def record(fused_t_s, fused_err_ne_m, fused_sigma_m, fix_applied_t_s, fix_gated, denied_from_s=10.0, seed=1):
+def record(fused_t_s, fused_err_ne_m, fused_sigma_m, fix_applied_t_s, fix_gated, denied_from_s=10.0, seed=1,
+           fused_vel_err_ne_m_s=None):
     n_fix = len(fix_applied_t_s)
+    if fused_vel_err_ne_m_s is None:
+        fused_vel_err_ne_m_s = np.zeros((len(fused_t_s), 2))
     return RunRecord(
         seed=seed,
         landmark_err_ne_m=np.zeros((1, 2)),
@@ -23,6 +26,7 @@ def record(fused_t_s, fused_err_ne_m, fused_sigma_m, fix_applied_t_s, fix_gated,
         fused_t_s=np.asarray(fused_t_s, float),
         fused_err_ne_m=np.asarray(fused_err_ne_m, float),
         fused_cov_ne_m2=np.array([np.eye(2) * s**2 for s in fused_sigma_m]),
+        fused_vel_err_ne_m_s=np.asarray(fused_vel_err_ne_m_s, float),
         fix_applied_t_s=np.asarray(fix_applied_t_s, float),
         denied_from_s=denied_from_s,
         denied_s=10.0,
@@ -53,6 +57,21 @@ def test_gap_figures_count_accepted_fixes_only():
     fused = summarize([r])["fused"]
     assert fused["longest_gap_s"] == pytest.approx(4.0)  # measured at the outputs: 15 s is the last before 16 s
     assert fused["since_fix_at_max_s"] == pytest.approx(4.0)
+
+
+def test_velocity_error_where_a_long_stretch_without_fixes_begins():
+    """GPS lost at 10 s; fixes accepted on arrival at 11 s, 16 s and 16.5 s; outputs every half second to 18 s.
+    Stretches: 10 -> 11 s (1 s), 11 -> 16 s (5 s), 16 -> 16.5 s and 16.5 -> 18 s (1.5 s): one of 2 s or more, and
+    its velocity error is the output's at 11 s, where it began, (0.3, 0.4) m/s: 0.5 m/s."""
+    t = np.arange(10.0, 18.01, 0.5)
+    v_err = np.full((len(t), 2), 0.01)
+    v_err[t == 11.0] = [0.3, 0.4]
+    v_err[t == 13.0] = [3.0, 4.0]  # inside the stretch, not where it began
+    r = record(t, np.zeros((len(t), 2)), np.full(len(t), 0.1), [11.0, 16.0, 16.5], [False] * 3, fused_vel_err_ne_m_s=v_err)
+    long_gaps = summarize([r])["fused"]["long_gaps"]
+    assert long_gaps["count"] == 1
+    assert long_gaps["velocity_error_max_m_s"] == pytest.approx(0.5)
+    assert long_gaps["velocity_error_rms_m_s"] == pytest.approx(0.5)
 
 
 def test_gap_from_the_loss_of_gps_when_no_fix_is_accepted():

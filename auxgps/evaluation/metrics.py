@@ -34,20 +34,40 @@ def _since_accepted_fix_s(r: RunRecord) -> np.ndarray:
     return r.fused_t_s - t_ref[k]
 
 
+#: A stretch without an accepted fix at least this long is one whose drift the velocity at its start decides, s.
+LONG_GAP_S = 2.0
+
+
+def _velocity_error_at_long_gaps(r: RunRecord) -> np.ndarray:
+    """(G,) horizontal velocity error (m/s) of the output at the start of each stretch of at least
+    :data:`LONG_GAP_S` without an accepted fix: the first output after the fix that began it (or after the loss of
+    GPS). Carried on the IMU alone, the output drifts by about this times the stretch."""
+    since = _since_accepted_fix_s(r)
+    if len(since) == 0 or len(r.fused_vel_err_ne_m_s) != len(since):
+        return np.zeros(0)
+    starts = np.flatnonzero(np.r_[True, np.diff(since) < 0])  # the count restarts: a fix arrived
+    ends = np.r_[starts[1:], len(since)] - 1  # the last output before the next restart
+    long = since[ends] >= LONG_GAP_S
+    return np.linalg.norm(r.fused_vel_err_ne_m_s[starts[long]], axis=1)
+
+
 def _fused(records: list[RunRecord]) -> dict:
     """The filter's output while denied: horizontal error, and its consistency with the reported covariance.
 
     And what explains a maximum: the longest stretch without an accepted fix (dead reckoning on the IMU alone),
-    and how long the output at the maximum had gone without one."""
+    and how long the output at the maximum had gone without one; and the velocity error the output had when such a
+    stretch began."""
     err = np.vstack([r.fused_err_ne_m for r in records])
     cov = np.concatenate([r.fused_cov_ne_m2 for r in records])
     if len(err) == 0:
         return {"count": 0, "rms_m": None, "p95_m": None, "max_m": None, "nees_mean": None, "within_3sigma": None,
-                "longest_gap_s": None, "since_fix_at_max_s": None}
+                "longest_gap_s": None, "since_fix_at_max_s": None,
+                "long_gaps": {"min_s": LONG_GAP_S, "count": 0, "velocity_error_rms_m_s": None, "velocity_error_max_m_s": None}}
     e = np.linalg.norm(err, axis=1)
     nees = np.einsum("ni,nij,nj->n", err, np.linalg.inv(cov), err)  # 2 degrees of freedom: 2 expected
     sigma_worst = np.sqrt(np.linalg.eigvalsh(cov)[:, -1])  # the horizontal accuracy auxgps reports
     since = np.concatenate([_since_accepted_fix_s(r) for r in records])
+    v_gap = np.concatenate([_velocity_error_at_long_gaps(r) for r in records])
     return {
         "count": int(len(e)),
         "rms_m": float(np.sqrt(np.mean(e**2))),
@@ -57,6 +77,12 @@ def _fused(records: list[RunRecord]) -> dict:
         "within_3sigma": float(np.mean(e <= 3.0 * sigma_worst)),
         "longest_gap_s": float(since.max()),
         "since_fix_at_max_s": float(since[np.argmax(e)]),
+        "long_gaps": {
+            "min_s": LONG_GAP_S,
+            "count": int(len(v_gap)),
+            "velocity_error_rms_m_s": float(np.sqrt(np.mean(v_gap**2))) if len(v_gap) else None,
+            "velocity_error_max_m_s": float(v_gap.max()) if len(v_gap) else None,
+        },
     }
 
 

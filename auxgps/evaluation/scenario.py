@@ -42,6 +42,7 @@ class RunRecord:
     fused_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (O,) output times while denied
     fused_err_ne_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     fused_cov_ne_m2: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    fused_vel_err_ne_m_s: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (O, 2) velocity - truth
     fix_applied_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (F,) when the filter got each fix (NaN: never)
     denied_from_s: float = 0.0  # when GPS was lost
     denied_s: float = 0.0
@@ -157,7 +158,7 @@ def run_once(
 
     pending: list[tuple[float, Fix, int]] = []  # (delivery time, fix, its index in fix_err)
     fix_applied, fix_err, fix_sigma, fix_gated, pos_ms, n_feat = [], [], [], [], [], []
-    fused_t, fused_err, fused_cov = [], [], []
+    fused_t, fused_err, fused_cov, fused_vel_err = [], [], [], []
     reasons: dict[str, int] = {}
     n_elig = n_elig_fixed = n_frames = 0
     blackout = (den.blackout_start_s, (den.blackout_start_s or 0.0) + den.blackout_duration_s)
@@ -211,6 +212,7 @@ def run_once(
             fused_t.append(t)
             fused_err.append(est.p_ned_m[:2] - traj.p_ned_m[i, :2])
             fused_cov.append(est.cov_p_m2[:2, :2])
+            fused_vel_err.append(est.v_ned_m_s[:2] - traj.v_ned_m_s[i, :2])
 
     return RunRecord(
         seed=seed,
@@ -225,6 +227,7 @@ def run_once(
         fused_t_s=np.array(fused_t),
         fused_err_ne_m=np.array(fused_err).reshape(-1, 2),
         fused_cov_ne_m2=np.array(fused_cov).reshape(-1, 2, 2),
+        fused_vel_err_ne_m_s=np.array(fused_vel_err).reshape(-1, 2),
         fix_applied_t_s=np.array(fix_applied, float),
         denied_from_s=float(den.gps_until_s),
         denied_s=float(traj.duration_s - den.gps_until_s),
