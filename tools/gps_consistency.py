@@ -294,11 +294,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if not args.gps_sigma_m > 0:
         ap.error("--gps-sigma-m must be positive")
+    if args.hold_out_bare and args.hold_out is None:
+        ap.error("--hold-out-bare needs --hold-out")
     cfg = load_photo_config(args.config)
     cam_cfg = load_photo_camera(args.camera) if args.camera else None
     files = list_photos(args.images, args.only)
-    if args.hold_out_bare and args.hold_out is None:
-        ap.error("--hold-out-bare needs --hold-out")
     result = run(files, cam_cfg, cfg, gps_sigma_m=args.gps_sigma_m, hold_out=args.hold_out, max_turn_deg=args.max_turn_deg,
                  hold_out_bare=args.hold_out_bare, say=lambda s: print(s, flush=True))
     if args.json:
