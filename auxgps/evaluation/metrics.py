@@ -38,11 +38,11 @@ def _since_accepted_fix_s(r: RunRecord) -> np.ndarray:
 LONG_GAP_S = 2.0
 
 
-def _velocity_error_at_long_gaps(r: RunRecord) -> np.ndarray:
+def _velocity_error_at_long_gaps(r: RunRecord, since: np.ndarray) -> np.ndarray:
     """(G,) horizontal velocity error (m/s) of the output at the start of each stretch of at least
     :data:`LONG_GAP_S` without an accepted fix: the first output after the fix that began it (or after the loss of
-    GPS). Carried on the IMU alone, the output drifts by about this times the stretch."""
-    since = _since_accepted_fix_s(r)
+    GPS). Carried on the IMU alone, the output drifts by about this times the stretch. ``since``: the run's
+    :func:`_since_accepted_fix_s`."""
     if len(since) == 0 or len(r.fused_vel_err_ne_m_s) != len(since):
         return np.zeros(0)
     starts = np.flatnonzero(np.r_[True, np.diff(since) < 0])  # the count restarts: a fix arrived
@@ -66,8 +66,9 @@ def _fused(records: list[RunRecord]) -> dict:
     e = np.linalg.norm(err, axis=1)
     nees = np.einsum("ni,nij,nj->n", err, np.linalg.inv(cov), err)  # 2 degrees of freedom: 2 expected
     sigma_worst = np.sqrt(np.linalg.eigvalsh(cov)[:, -1])  # the horizontal accuracy auxgps reports
-    since = np.concatenate([_since_accepted_fix_s(r) for r in records])
-    v_gap = np.concatenate([_velocity_error_at_long_gaps(r) for r in records])
+    since_per_run = [_since_accepted_fix_s(r) for r in records]
+    since = np.concatenate(since_per_run)
+    v_gap = np.concatenate([_velocity_error_at_long_gaps(r, s) for r, s in zip(records, since_per_run)])
     return {
         "count": int(len(e)),
         "rms_m": float(np.sqrt(np.mean(e**2))),
