@@ -22,3 +22,4 @@ def test_sitl_flies_home_on_auxgps_through_a_gps1_failure(tmp_path):
     assert result["landed"] and result["landing_error_m"] <= 1.0, proc.stderr[-2000:]
     assert 3 in result["gps2_fix_types_seen"]  # the autopilot's GPS2 carried auxgps's 3D fix while GPS1 was down
     assert result["denied_s"] >= 180  # the closed loop: GPS1 down for at least 3 minutes
+    assert len((tmp_path / "truth.csv").read_text().splitlines()) > 1000  # the truth track, to score it again

@@ -7,8 +7,10 @@ Starts SITL in a scratch folder (its defaults file beside the binary, plus confi
 connects a ground-station script on SERIAL0 (TCP 5760) and `auxgps run` on SERIAL1 (TCP 5762) with the world
 rendered at SIM_STATE's truth. The script arms in GUIDED, takes off to 15 m, flies the thesis' survey over the
 world (a 20 m x 20 m lawnmower, north-south legs 2 m apart, at 1 m/s), disables GPS1 (SIM_GPS1_ENABLE = 0) after
-the third leg, finishes the survey on GPS2 (more than 3 minutes), switches to RTL and waits for the landing. Prints one JSON line: landing_error_m (true distance from home), denied_s, the autopilot's
-horizontal error after the failure (rms, max), and whether GPS2 carried a 3D fix. Exit 0 if it landed within 1 m.
+the third leg, finishes the survey on GPS2 (more than 3 minutes), switches to RTL and waits for the landing.
+Prints one JSON line: landing_error_m (true distance from home), denied_s, the autopilot's horizontal error after
+the failure (rms, max), and whether GPS2 carried a 3D fix; writes result.json, the truth track (truth.csv) and
+auxgps's logs (run/) to --out. Exit 0 if it landed within 1 m.
 """
 
 from __future__ import annotations
@@ -108,6 +110,16 @@ def score_logs(gs: GroundStation, run_dir: Path, failed_at_mono: float, delay_s:
     }
 
 
+def write_truth(gs: GroundStation, path: Path) -> None:
+    """The truth track beside auxgps's logs, on the same monotonic clock, so that a flight can be scored again
+    (a fix's error, how its errors hang together in time) without flying it again."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["t_s", "north_m", "east_m", "gps1_failed"])
+        for t, n, e in gs.track:
+            w.writerow([f"{t:.4f}", f"{n:.4f}", f"{e:.4f}", int(gs.failed_at_mono is not None and t >= gs.failed_at_mono)])
+
+
 def fly(gs: GroundStation) -> dict:
     t0 = time.time()
     while not gs.armed():
@@ -194,6 +206,7 @@ def main(argv=None) -> int:
         run.terminate()
         run.wait(timeout=20)
         result["auxgps"] = score_logs(gs, out / "run", gs.failed_at_mono, GPS_DELAY_MS / 1000.0)
+        write_truth(gs, out / "truth.csv")
     finally:
         for p in (run, sitl):
             if p is not None and p.poll() is None:
