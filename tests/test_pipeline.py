@@ -9,7 +9,7 @@ from auxgps.core.camera import CameraPose
 from auxgps.core.features import Features, FeatureDetector
 from auxgps.core.geometry import R_BODY_CAM_DOWN, R_ned_body_from_euler, cross_matrix
 from auxgps.core.landmarks import LandmarkMap
-from auxgps.core.localise import Fix, Localiser, NoFix, PositionPrior, _Correspondences, _prefix_spread_order, _ransac_seeds
+from auxgps.core.localise import Fix, Localiser, NoFix, PositionPrior, _Correspondences, _prefix_spread_order, _ransac_seeds, _Reading, _spread_by_rivals
 from auxgps.core.mapping import Mapper
 from auxgps.core.nav import NavSample
 from auxgps.errors import FrameError
@@ -148,6 +148,44 @@ def test_no_fix_when_the_most_probable_reading_has_too_few_inliers(camera, pipel
     feats = Features(np.vstack([uv_cube, uv_other]), lm.descriptors[[0, 1, 2, 8, 9, 10, 11]].copy(), np.zeros(7, int))
     res = locate(pipeline, camera, lm, feats, np.eye(3), 15.0, PositionPrior(p_true, 0.12))
     assert isinstance(res, NoFix) and "fewer than" in res.reason
+
+
+def test_a_fix_read_where_a_weaker_reading_disagrees_reports_the_doubt(camera, pipeline):
+    """As above, the four corners seen as from 0.3 m east, and the filter's prior drifted half way there: the
+    wrong reading (four inliers) now wins over the right one (three), which has too few inliers to be a fix and
+    is no ground for calling the frame ambiguous. The fix must carry the doubt: its reported sigma covers its
+    0.3 m error (alone, the wrong reading reports 0.06 m, five sigma off)."""
+    cube = np.array([[n, e, d] for n in (-0.5, 0.5) for e in (-0.5, 0.5) for d in (0.0, -1.0)])
+    other = np.array([[n, e, 0.0] for n in (-0.5, 0.5) for e in (2.5, 3.5)])
+    lm, _ = synthetic_map(camera, np.vstack([cube, other]))
+    p_true = np.array([0.0, -1.0, -15.0])
+    uv_cube, _ = CameraPose(p_true, R_BODY_CAM_DOWN).project(camera, cube[:3])
+    uv_other, _ = CameraPose(p_true + [0.0, 0.3, 0.0], R_BODY_CAM_DOWN).project(camera, other)
+    feats = Features(np.vstack([uv_cube, uv_other]), lm.descriptors[[0, 1, 2, 8, 9, 10, 11]].copy(), np.zeros(7, int))
+    res = locate(pipeline, camera, lm, feats, np.eye(3), 15.0, PositionPrior(p_true + [0.0, 0.15, 0.0], 0.12))
+    assert isinstance(res, Fix) and res.n_inliers == 4
+    err_east_m = res.p_ned_m[1] - p_true[1]
+    assert err_east_m == pytest.approx(0.3, abs=atol_fix_m)  # the wrong reading won
+    assert abs(err_east_m) / np.sqrt(res.cov_ned_m2[1, 1]) < 2.0
+
+
+def test_rivals_spread_the_covariance_by_their_probability():
+    """Known answers: a rival as probable as the best, 0.3 m north of it, adds half its squared distance to the
+    north variance; one 10 units less probable, 1 m east, adds exp(-10) / (2 + exp(-10)) of a square metre."""
+    def reading(n, e):
+        return _Reading(np.array([n, e, -15.0]), np.eye(3) * 0.01, np.ones(4, bool), 4.0, 1.0, 0.0)
+
+    readings = [reading(0.0, 0.0), reading(0.3, 0.0), reading(0.0, 1.0)]
+    out = _spread_by_rivals(readings[0], readings, np.array([2.0, 2.0, -8.0]))
+    w_far = np.exp(-10.0) / (2.0 + np.exp(-10.0))
+    w_near = 1.0 / (2.0 + np.exp(-10.0))
+    expected = np.eye(3) * 0.01
+    expected[0, 0] += w_near * 0.09
+    expected[1, 1] += w_far * 1.0
+    np.testing.assert_allclose(out.cov, expected, rtol=rtol_equal, atol=1e-15)
+    np.testing.assert_array_equal(out.p, readings[0].p)  # the best reading's position is kept
+    alone = _spread_by_rivals(readings[0], readings[:1], np.array([2.0]))
+    np.testing.assert_array_equal(alone.cov, readings[0].cov)
 
 
 def refine_by_jacobians(loc, p0, corr, inl, alt_m):

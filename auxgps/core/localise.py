@@ -10,7 +10,7 @@ there is no fix. A single wrong match cannot move the fix, because it cannot out
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -151,6 +151,20 @@ class _Reading:
     attitude_m2: float  # squared Mahalanobis distance of its attitude correction from the telemetry's
 
 
+def _spread_by_rivals(best: _Reading, readings: list[_Reading], ll: np.ndarray) -> _Reading:
+    """``best`` with its horizontal covariance grown by where the frame's other readings put the camera: their
+    second moment about it, each weighed by its probability among the readings (``exp(ll)``, normalised). A
+    rival a few units below the best adds next to nothing; one nearly as probable adds most of its squared
+    distance, whatever its inlier count (a small cube seen obliquely, its corners read at the wrong height by
+    four inliers against the right reading's three)."""
+    w = np.exp(ll - ll.max())
+    w /= w.sum()
+    d = np.array([r.p[:2] - best.p[:2] for r in readings])
+    cov = best.cov.copy()
+    cov[:2, :2] += np.einsum("k,ki,kj->ij", w, d, d)
+    return replace(best, cov=cov)
+
+
 class Localiser:
     """Locates frames against a :class:`LandmarkMap`."""
 
@@ -274,6 +288,9 @@ class Localiser:
         though they cannot be a fix: when one of them is the most probable, the frame has none (a few corners of a
         small cube fitting the prior within a pixel outweigh six that need a tilt and a shift to fit at all). A
         second distinct reading with enough inliers within ``margin`` of the best makes the frame ambiguous.
+        Otherwise the best is the fix, its covariance grown by the other readings' spread about it, each weighed
+        by its probability (:func:`_spread_by_rivals`): a reading nearly as probable but with too few inliers to
+        be a fix, or too close to call the frame ambiguous, still says how far off the fix may be.
         """
         cfg = self.cfg.positioning
         floor = max(2.0, cfg.rival_min_share * float(support.max()))
@@ -320,7 +337,7 @@ class Localiser:
                 continue
             if np.linalg.norm(readings[k].p[:2] - best.p[:2]) > radius and ll[k] >= ll[order[0]] - margin:
                 return f"ambiguous: a reading {np.linalg.norm(readings[k].p[:2] - best.p[:2]):.2f} m away is within {ll[order[0]] - ll[k]:.1f} of the best"
-        return best
+        return _spread_by_rivals(best, readings, ll)
 
     def _reading(self, corr: _Correspondences, view: _View, seed: int) -> _Reading:
         """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
