@@ -205,8 +205,8 @@ def main(argv=None) -> int:
         result = fly(gs)
         run.terminate()
         run.wait(timeout=20)
-        result["auxgps"] = score_logs(gs, out / "run", gs.failed_at_mono, GPS_DELAY_MS / 1000.0)
         write_truth(gs, out / "truth.csv")
+        result["auxgps"] = score_logs(gs, out / "run", gs.failed_at_mono, GPS_DELAY_MS / 1000.0)
     finally:
         for p in (run, sitl):
             if p is not None and p.poll() is None:
