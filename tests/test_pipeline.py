@@ -135,17 +135,24 @@ def test_a_small_cube_read_off_by_its_height_loses_on_its_fit(camera, pipeline):
     assert res.n_inliers == 8
 
 
-def test_no_fix_when_the_most_probable_reading_has_too_few_inliers(camera, pipeline):
-    """Three corners of one object seen where the filter expects them, and four of another seen as from 0.5 m
-    away (a reading that takes some features for the wrong landmarks): the better explanation has too few
-    inliers to be a fix, and the one with enough must not become a fix in its place."""
+def three_corners_here_four_there(camera, shift_east_m):
+    """A frame from 15 m with three corners of a cube where they are, and four corners of another object seen as
+    from ``shift_east_m`` east of the camera's true position: the map, the true position and the features."""
     cube = np.array([[n, e, d] for n in (-0.5, 0.5) for e in (-0.5, 0.5) for d in (0.0, -1.0)])
     other = np.array([[n, e, 0.0] for n in (-0.5, 0.5) for e in (2.5, 3.5)])
     lm, _ = synthetic_map(camera, np.vstack([cube, other]))
     p_true = np.array([0.0, -1.0, -15.0])
     uv_cube, _ = CameraPose(p_true, R_BODY_CAM_DOWN).project(camera, cube[:3])
-    uv_other, _ = CameraPose(p_true + [0.0, 0.5, 0.0], R_BODY_CAM_DOWN).project(camera, other)
+    uv_other, _ = CameraPose(p_true + [0.0, shift_east_m, 0.0], R_BODY_CAM_DOWN).project(camera, other)
     feats = Features(np.vstack([uv_cube, uv_other]), lm.descriptors[[0, 1, 2, 8, 9, 10, 11]].copy(), np.zeros(7, int))
+    return lm, p_true, feats
+
+
+def test_no_fix_when_the_most_probable_reading_has_too_few_inliers(camera, pipeline):
+    """Three corners of one object seen where the filter expects them, and four of another seen as from 0.5 m
+    away (a reading that takes some features for the wrong landmarks): the better explanation has too few
+    inliers to be a fix, and the one with enough must not become a fix in its place."""
+    lm, p_true, feats = three_corners_here_four_there(camera, 0.5)
     res = locate(pipeline, camera, lm, feats, np.eye(3), 15.0, PositionPrior(p_true, 0.12))
     assert isinstance(res, NoFix) and "fewer than" in res.reason
 
@@ -155,13 +162,7 @@ def test_a_fix_read_where_a_weaker_reading_disagrees_reports_the_doubt(camera, p
     wrong reading (four inliers) now wins over the right one (three), which has too few inliers to be a fix and
     is no ground for calling the frame ambiguous. The fix must carry the doubt: its reported sigma covers its
     0.3 m error (alone, the wrong reading reports 0.06 m, five sigma off)."""
-    cube = np.array([[n, e, d] for n in (-0.5, 0.5) for e in (-0.5, 0.5) for d in (0.0, -1.0)])
-    other = np.array([[n, e, 0.0] for n in (-0.5, 0.5) for e in (2.5, 3.5)])
-    lm, _ = synthetic_map(camera, np.vstack([cube, other]))
-    p_true = np.array([0.0, -1.0, -15.0])
-    uv_cube, _ = CameraPose(p_true, R_BODY_CAM_DOWN).project(camera, cube[:3])
-    uv_other, _ = CameraPose(p_true + [0.0, 0.3, 0.0], R_BODY_CAM_DOWN).project(camera, other)
-    feats = Features(np.vstack([uv_cube, uv_other]), lm.descriptors[[0, 1, 2, 8, 9, 10, 11]].copy(), np.zeros(7, int))
+    lm, p_true, feats = three_corners_here_four_there(camera, 0.3)
     res = locate(pipeline, camera, lm, feats, np.eye(3), 15.0, PositionPrior(p_true + [0.0, 0.15, 0.0], 0.12))
     assert isinstance(res, Fix) and res.n_inliers == 4
     err_east_m = res.p_ned_m[1] - p_true[1]
