@@ -82,30 +82,52 @@ class GroundStation:
         return bool(hb and hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
 
 
+def lag_correlation(t_s: np.ndarray, err_ne_m: np.ndarray, lags_s=(0.1, 1.0, 4.0), tol_s: float = 0.05) -> dict:
+    """How the fixes' north and east errors hang together in time: for each lag, the correlation of each fix's
+    error with that of the first fix at least the lag later (pairs within ``tol_s`` of the lag only). Near 0 at
+    0.1 s for errors that are new every frame; near 1 for an error shared over seconds (an autopilot's slow
+    attitude error, the map's own), which is what the filter's shared-error state stands for."""
+    out = {}
+    for lag in lags_s:
+        j = np.searchsorted(t_s, t_s + lag)
+        ok = j < len(t_s)
+        ok[ok] &= np.abs(t_s[j[ok]] - t_s[ok] - lag) <= tol_s
+        if ok.sum() < 3:
+            out[f"{lag:g}s"] = None
+            continue
+        a, b = err_ne_m[ok], err_ne_m[j[ok]]
+        out[f"{lag:g}s"] = [round(float(np.corrcoef(a[:, k], b[:, k])[0, 1]), 2) for k in (0, 1)]
+    return out
+
+
 def score_logs(gs: GroundStation, run_dir: Path, failed_at_mono: float, delay_s: float) -> dict:
     """auxgps's own logs against the truth track (one machine, one monotonic clock): its visual fixes and the
     GPS_INPUT it sent while GPS1 was down. A GPS_INPUT describes the vehicle ``delay_s`` before it was sent."""
     track = np.array(gs.track)
 
     def errors(rows, t_key, shift_s):
+        """(K, 2) north/east errors (m) of the rows inside the failure, their times (K,) and which rows they are."""
         t = np.array([float(r[t_key]) for r in rows]) - shift_s
         ne = np.array([gs.ne(float(r["lat_deg"]), float(r["lon_deg"])) for r in rows]).reshape(-1, 2)
         keep = (t >= failed_at_mono) & (t <= track[-1, 0])
         truth = np.column_stack([np.interp(t[keep], track[:, 0], track[:, k]) for k in (1, 2)])
-        return np.linalg.norm(ne[keep] - truth, axis=1), keep
+        return ne[keep] - truth, t[keep], keep
 
     def stats(e):
         return {"count": int(len(e)), "rms_m": round(float(np.sqrt(np.mean(e**2))), 3) if len(e) else None,
                 "p95_m": round(float(np.percentile(e, 95)), 3) if len(e) else None, "max_m": round(float(e.max()), 3) if len(e) else None}
 
     fixes = [r for r in csv.DictReader(open(run_dir / "fixes.csv")) if r["kind"] == "visual"]
-    fix_err, keep = errors(fixes, "t_s", 0.0)
+    fix_err_ne, fix_t, keep = errors(fixes, "t_s", 0.0)
+    fix_err = np.linalg.norm(fix_err_ne, axis=1)
     accepted = np.array([r["accepted"] == "True" for r in fixes])[keep]
     sent = [r for r in csv.DictReader(open(run_dir / "gps_input.csv")) if r["fix_type"] == "3"]
-    out_err, keep = errors(sent, "t_s", delay_s)
+    out_err_ne, _, keep = errors(sent, "t_s", delay_s)
+    out_err = np.linalg.norm(out_err_ne, axis=1)
     sigma = np.array([float(r["horiz_accuracy_m"]) for r in sent])[keep]
     return {
-        "fixes": {**stats(fix_err), "accepted_over_0_5m": int(np.sum(accepted & (fix_err > 0.5)))},
+        "fixes": {**stats(fix_err), "accepted_over_0_5m": int(np.sum(accepted & (fix_err > 0.5))),
+                  "error_correlation_ne": lag_correlation(fix_t, fix_err_ne)},
         "gps_input_3d": {**stats(out_err), "within_3sigma": round(float(np.mean(out_err <= 3 * sigma)), 3) if len(out_err) else None},
     }
 
