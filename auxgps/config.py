@@ -141,6 +141,9 @@ class FusionConfig:
 
     accel_noise_m_s2_sqrt_hz: Positive = 0.02
     accel_bias_sigma_m_s2: Positive = 0.2
+    # ArduPilot's EKF3 on copters: EK3_ABIAS_P_NSE 0.02 m/s^3 on its 0.012 s step, i.e. 0.02 * sqrt(0.012) = 0.0022
+    # m/s^2/sqrt(s). A real accelerometer's bias drifts with temperature; the simulator's is constant, and a filter
+    # told so holds the velocity better across leg ends (README, results), which no flight should count on.
     accel_bias_walk_m_s2_sqrt_s: NonNegative = 0.002
     # The error visual fixes share for seconds (attitude error, map error): one sigma and correlation time.
     fix_bias_sigma_m: Positive = 0.1
