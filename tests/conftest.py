@@ -1,3 +1,5 @@
+import importlib.util
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +11,16 @@ from auxgps.sim.world import WorldSpec, world_from_spec
 
 REPO = Path(__file__).resolve().parent.parent
 WORLDS = REPO / "config" / "worlds"
+
+
+def load_tool(name: str):
+    """The script ``tools/<name>.py`` as a module (tools/ is not a package), registered in ``sys.modules`` so that
+    its dataclasses can look their module up."""
+    spec = importlib.util.spec_from_file_location(name, REPO / "tools" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 @pytest.fixture

@@ -6,22 +6,19 @@ real block is built and measured as the tool's report says.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.conftest import load_tool
+
 REPO = Path(__file__).resolve().parent.parent
 BRIGHTON = REPO.parent / "shared" / "data" / "brighton_beach" / "images"
 CAMERA = REPO / "config" / "cameras" / "dji_fc300s.yaml"
 
-_spec = importlib.util.spec_from_file_location("gps_consistency", REPO / "tools" / "gps_consistency.py")
-gc = importlib.util.module_from_spec(_spec)
-sys.modules["gps_consistency"] = gc  # dataclasses look their module up
-_spec.loader.exec_module(gc)
+gc = load_tool("gps_consistency")
 
 atol_m = 1e-9
 

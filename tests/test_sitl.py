@@ -1,6 +1,5 @@
 """The closed loop on ArduPilot's own copter SITL: found through ARDUPILOT_SITL, skipped without it."""
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -9,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.conftest import load_tool
 
 REPO = Path(__file__).resolve().parent.parent
 SITL = os.environ.get("ARDUPILOT_SITL")
@@ -30,9 +31,7 @@ def test_sitl_flies_home_on_auxgps_through_a_gps1_failure(tmp_path):
 def test_lag_correlation_known_answers():
     """Errors made of a constant shared part and fresh per-frame noise of equal variance correlate 0.5 at every lag;
     fresh noise alone does not correlate; a lag with no pair inside the tolerance gives None."""
-    spec = importlib.util.spec_from_file_location("sitl_flight", REPO / "tools" / "sitl_flight.py")
-    sf = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sf)
+    sf = load_tool("sitl_flight")
     rng = np.random.default_rng(3)
     t = np.arange(0.0, 600.0, 0.1)
     shared = np.repeat(rng.standard_normal((len(t) // 100, 2)), 100, axis=0)  # constant over 10 s blocks

@@ -6,7 +6,6 @@ talk MAVLink 2 to it with pymavlink and read its JSON log. Every process is kill
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import os
@@ -25,21 +24,14 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
 
 from auxgps.core.geometry import LocalFrame  # noqa: E402
+from tests.conftest import load_tool  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 EMULATOR_PATH = REPO / "tools" / "vehicle_emulator.py"
 WORLD = REPO / "config" / "worlds" / "one_cube_1m.yaml"
 
 
-def _load_emulator():
-    spec = importlib.util.spec_from_file_location("vehicle_emulator", EMULATOR_PATH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["vehicle_emulator"] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-emu = _load_emulator()
+emu = load_tool("vehicle_emulator")
 MAV = emu.MAV
 FRAME = LocalFrame(47.397742, 8.545594, 488.0)
 
