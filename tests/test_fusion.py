@@ -218,3 +218,80 @@ def test_visual_fixes_cannot_make_the_filter_surer_than_their_shared_error():
             as_visual.update_position(t, np.zeros(2), np.eye(2) * 0.05**2, visual=True)
     assert as_gps.estimate().sigma_h_m < 0.02
     assert as_visual.estimate().sigma_h_m >= 0.5 * cfg.fix_bias_sigma_m
+
+
+def _moving_imus(rng, n=100, dt=0.01):
+    return [ImuSample(dt * (k + 1), HOVER_F + rng.normal(0, 0.3, 3), R_TILTED) for k in range(n)]
+
+
+def test_late_fix_is_fused_in_time_order_with_every_measurement_since():
+    """GPS1 at 0.55 s says 2 m north, the barometer at 0.60 s says 5 m up, then a fix captured at 0.50 s arrives
+    at 0.70 s: the state is the one the measurements give applied in time order (to 1e-9), not the state before
+    the fix with the GPS1 and barometer updates thrown away."""
+    rng = np.random.default_rng(11)
+    imus = _moving_imus(rng)
+    fix = (0.50, np.array([0.3, -0.2]), np.eye(2) * 1.0)
+    gps1 = (0.55, np.array([2.0, 0.0]), np.eye(2) * 0.05**2)
+    baro = (0.60, 5.0, 0.1)
+    in_order, late = make(), make()
+    for imu in imus:
+        for f in (in_order, late):
+            f.propagate(imu)
+        t = imu.t_s
+        if t == pytest.approx(0.50):
+            in_order.update_position(*fix, visual=True)
+        if t == pytest.approx(0.55):
+            for f in (in_order, late):
+                assert f.update_position(*gps1).accepted
+        if t == pytest.approx(0.60):
+            for f in (in_order, late):
+                assert f.update_altitude(*baro)
+        if t == pytest.approx(0.70):
+            assert late.update_position(*fix, visual=True).accepted
+    a, b = in_order.estimate(), late.estimate()
+    tol = 1e-9  # m, m/s, m^2
+    np.testing.assert_allclose(b.p_ned_m, a.p_ned_m, atol=tol)
+    np.testing.assert_allclose(b.v_ned_m_s, a.v_ned_m_s, atol=tol)
+    np.testing.assert_allclose(b.cov_p_m2, a.cov_p_m2, atol=tol)
+    np.testing.assert_allclose(late._ekf.x, in_order._ekf.x, atol=tol)
+    assert b.p_ned_m[0] > 1.5 and b.p_ned_m[2] < -4.0  # GPS1's and the barometer's updates survived the fix
+    assert late.n_replayed > 0
+
+
+def test_measurements_in_any_arrival_order_give_the_time_ordered_state():
+    """Twenty position and height measurements scattered over 0.3 s, each arriving up to 0.25 s late in a shuffled
+    order: the same state as each fused as soon as its time came (to 1e-9)."""
+    rng = np.random.default_rng(12)
+    imus = _moving_imus(rng, n=120)
+    meas = []
+    for k in range(20):
+        t = float(rng.uniform(0.6, 0.9))
+        if k % 2:
+            meas.append((t, "position", (t, rng.normal(0, 0.05, 2), np.eye(2) * 0.3**2)))
+        else:
+            meas.append((t, "altitude", (t, float(rng.normal(0, 0.05)), 0.2)))
+    arrive = {id(m): m[0] + float(rng.uniform(0.0, 0.25)) for m in meas}
+    in_order, shuffled = make(), make()
+
+    def fuse(f, m):
+        return f.update_position(*m[2]).accepted if m[1] == "position" else f.update_altitude(*m[2])
+
+    for imu in imus:
+        # in time order: each measurement just before the first IMU sample after its time
+        for m in sorted((m for m in meas if imu.t_s - 0.01 < m[0] <= imu.t_s), key=lambda m: m[0]):
+            assert fuse(in_order, m)
+        in_order.propagate(imu)
+        shuffled.propagate(imu)
+        for m in sorted((m for m in meas if imu.t_s - 0.01 < arrive[id(m)] <= imu.t_s), key=lambda m: -m[0]):
+            assert fuse(shuffled, m)
+    np.testing.assert_allclose(shuffled._ekf.x, in_order._ekf.x, atol=1e-9)
+    np.testing.assert_allclose(shuffled._ekf.P, in_order._ekf.P, atol=1e-9)
+
+
+def test_position_between_imu_samples_is_compared_with_the_state_carried_to_its_time():
+    """A vehicle at 1 m/s north: a fix of where it is 5 ms after the last IMU sample is not an innovation."""
+    f = NavFilter(FusionConfig(), 0.0, np.zeros(3), np.array([1.0, 0.0, 0.0]), 0.01, 0.01)
+    for k in range(1, 51):
+        f.propagate(hover(0.01 * k))
+    d = f.update_position(0.505, np.array([0.505, 0.0]), np.eye(2) * 0.01**2)
+    assert d.accepted and d.mahalanobis2 < 1e-6

@@ -10,8 +10,13 @@ and the map's own errors. Fusing twenty fixes a second as if their errors were i
 believe itself to a centimetre, gate out good fixes and report an accuracy that the truth does not bear out; as a
 first-order Gauss-Markov state it keeps the reported accuracy honest. GPS1 readings do not share it.
 
-Fixes are stamped with their frame's capture time and may arrive late: the filter keeps a short history of its
-states and IMU inputs, rolls back to the capture time, applies the fix and replays the inputs since. Each fix is
+Every input is stamped with the time it describes, and any may arrive late (a visual fix a frame's processing
+after its capture, GPS1 its receiver's lag after its measurement). The filter keeps a short history of every step
+it took (IMU propagations, accepted updates, re-initialisations) with the state after each; a late measurement
+rolls the state back to its time, is applied there, and every later step is taken again in time order, so the
+result is the one the inputs would have given in time order, whatever their arrival order (PX4's EKF2 fuses at a
+delayed horizon for the same reason). A replayed update keeps the gate decision it had. A measurement between two
+IMU samples is compared with the state at the earlier one carried forward by its velocity. Each fix is
 gated on its innovation (squared Mahalanobis distance against a chi-square threshold); when the gate keeps
 rejecting a run of fixes that agree with each other, the filter itself has drifted and is re-initialised on them.
 """
@@ -20,7 +25,6 @@ from __future__ import annotations
 
 import bisect
 import logging
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,12 +36,43 @@ log = logging.getLogger(__name__)
 
 GRAVITY_NED_M_S2 = np.array([0.0, 0.0, 9.80665])
 _N = 11
-_H_NE = np.hstack([np.eye(2), np.zeros((2, _N - 2))])
-_H_NE_VISUAL = _H_NE.copy()
-_H_NE_VISUAL[:, 9:11] = np.eye(2)
-_H_D = np.zeros((1, _N))
-_H_D[0, 2] = 1.0
 _I3 = np.arange(3)  # diagonal indices of a 3 x 3 block
+_I2 = np.arange(2)
+
+
+def _H_ne(dt_s: float, visual: bool) -> np.ndarray:
+    """(2, 11) horizontal position ``dt_s`` after the state's time (carried by its velocity); a visual fix also
+    sees the shared fix error."""
+    H = np.zeros((2, _N))
+    H[_I2, _I2] = 1.0
+    H[_I2, _I2 + 3] = dt_s
+    if visual:
+        H[_I2, _I2 + 9] = 1.0
+    return H
+
+
+def _H_down(dt_s: float) -> np.ndarray:
+    """(1, 11) down position ``dt_s`` after the state's time."""
+    H = np.zeros((1, _N))
+    H[0, 2], H[0, 5] = 1.0, dt_s
+    return H
+
+
+@dataclass(frozen=True)
+class _Step:
+    """One step the filter took, kept for replay after a late measurement.
+
+    ``t_s``: the time the step describes (its order in the history); ``t_state_s``: the state's time after it (the
+    last IMU sample's); ``kind``: "imu", "position", "altitude" or "reinit"; ``data``: what re-applies it.
+    ``x``, ``P``: the state after it.
+    """
+
+    t_s: float
+    t_state_s: float
+    kind: str
+    data: tuple
+    x: np.ndarray
+    P: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -92,12 +127,14 @@ class NavFilter:
         self._ekf.x = np.concatenate([p_ned_m, v_ned_m_s, np.zeros(5)]).reshape(_N, 1).astype(float)
         self._ekf.P = np.diag([sigma_p_m**2] * 3 + [sigma_v_m_s**2] * 3 + [cfg.accel_bias_sigma_m_s2**2] * 3 + [cfg.fix_bias_sigma_m**2] * 2)
         self.t_s = float(t_s)
-        self._history: deque = deque()  # (t_s, x, P, imu) after each propagation
+        # Every step taken, in time order, the state after each; the first is the state it started from.
+        self._history: list[_Step] = [_Step(self.t_s, self.t_s, "start", (), self._ekf.x.copy(), self._ekf.P.copy())]
         self._rejected_run: list[tuple[float, np.ndarray, np.ndarray]] = []
         self.n_accepted = 0
         self.n_rejected = 0
         self.n_reinit = 0
         self.n_bad_imu = 0
+        self.n_replayed = 0  # steps taken again after a late measurement
         self._last_imu_t = -np.inf
 
     # -- inputs --------------------------------------------------------------------------------------------
@@ -110,46 +147,54 @@ class NavFilter:
             log.warning("IMU sample at t=%.3f s rejected: %s", imu.t_s, problem)
             return False
         self._last_imu_t = imu.t_s
-        self._predict(imu)
-        self._history.append((self.t_s, self._ekf.x.copy(), self._ekf.P.copy(), imu))
-        while self._history and self._history[0][0] < self.t_s - self.cfg.history_s:
-            self._history.popleft()
+        later = self._rewind(imu.t_s)  # empty unless a measurement stamped after this sample was fused already
+        self._take("imu", imu.t_s, (imu,))
+        self._retake(later or [])
         return True
 
     def update_position(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray, visual: bool = False) -> GateDecision:
         """Fuse a horizontal position fix captured at ``t_s`` (up to ``history_s`` ago). A ``visual`` fix carries
         the error all visual fixes share (see the module's docstring); a GPS reading does not."""
+        t_s = float(t_s)
         p_ne_m = np.asarray(p_ne_m, float).reshape(2)
         cov_ne_m2 = np.asarray(cov_ne_m2, float).reshape(2, 2)
-        if not (np.all(np.isfinite(p_ne_m)) and np.all(np.isfinite(cov_ne_m2))):
+        if not (np.isfinite(t_s) and np.all(np.isfinite(p_ne_m)) and np.all(np.isfinite(cov_ne_m2))):
             return self._decide(GateDecision(t_s, False, np.nan, "fix is not finite"))
-        replay = self._rewind(t_s)
-        if replay is None:
+        later = self._rewind(t_s)
+        if later is None:
             return self._decide(GateDecision(t_s, False, np.nan, f"fix {self.t_s - t_s:.3f} s old, older than the history"))
-        H = _H_NE_VISUAL if visual else _H_NE
+        H = _H_ne(t_s - self.t_s, visual)
         S = H @ self._ekf.P @ H.T + cov_ne_m2
         y = p_ne_m - (H @ self._ekf.x)[:, 0]
         m2 = float(y @ np.linalg.solve(S, y))
         if m2 <= self.cfg.gate_chi2:
-            self._ekf.update(p_ne_m.reshape(2, 1), lambda x: H, lambda x: H @ x, R=cov_ne_m2)
+            self._take("position", t_s, (p_ne_m, cov_ne_m2, visual))
             self._rejected_run.clear()
             decision = GateDecision(t_s, True, m2, "accepted")
         else:
             decision = GateDecision(t_s, False, m2, f"innovation {np.sqrt(m2):.1f} sigma")
             self._rejected_run.append((t_s, p_ne_m, cov_ne_m2))
             if self._rejected_run_agrees():
-                self._reinitialise(t_s, p_ne_m, cov_ne_m2)
+                self._take("reinit", t_s, (p_ne_m, cov_ne_m2))
+                self._rejected_run.clear()
+                self.n_reinit += 1
+                log.warning("filter re-initialised at t=%.3f s on %d consistent rejected fixes", t_s, self.cfg.reinit_count)
                 decision = GateDecision(t_s, False, m2, "re-initialised on a run of consistent rejected fixes")
-        self._replay(replay)
+        self._retake(later)
         return self._decide(decision)
 
     def update_altitude(self, t_s: float, alt_m: float, sigma_m: float) -> bool:
-        """Fuse a barometric height above the origin (m), applied at the current time."""
-        if not (np.isfinite(alt_m) and np.isfinite(sigma_m) and sigma_m > 0):
+        """Fuse a barometric height above the origin (m) measured at ``t_s`` (up to ``history_s`` ago)."""
+        t_s = float(t_s)
+        if not (np.isfinite(t_s) and np.isfinite(alt_m) and np.isfinite(sigma_m) and sigma_m > 0):
             log.warning("altitude sample at t=%.3f s rejected: not finite", t_s)
             return False
-        z = np.array([[-alt_m]])
-        self._ekf.update(z, lambda x: _H_D, lambda x: x[2:3], R=np.array([[sigma_m**2]]))
+        later = self._rewind(t_s)
+        if later is None:
+            log.warning("altitude sample at t=%.3f s rejected: older than the history", t_s)
+            return False
+        self._take("altitude", t_s, (float(alt_m), float(sigma_m)))
+        self._retake(later)
         return True
 
     # -- outputs -------------------------------------------------------------------------------------------
@@ -159,25 +204,20 @@ class NavFilter:
         return FusedEstimate(self.t_s, x[:3].copy(), x[3:6].copy(), P[:3, :3].copy(), P[3:6, 3:6].copy())
 
     def estimate_at(self, t_s: float) -> FusedEstimate:
-        """The estimate at ``t_s`` (s), at most ``history_s`` back: the state after the last IMU sample not later
+        """The estimate at ``t_s`` (s), at most ``history_s`` back: the state after the last step not later
         than ``t_s``, carried to ``t_s`` by its velocity. What GPS_INPUT sends when the autopilot is told its GPS
         lags by a fixed delay (``GPS2_DELAY_MS``): the vehicle at that moment, not at the last IMU sample."""
         t_s = float(t_s)
-        if t_s >= self.t_s or not self._history:
-            t_k, x, P = self.t_s, self._ekf.x[:, 0], self._ekf.P
-        else:
-            k = self._last_not_after(t_s)
-            t_k, x, P = self._history[0 if k is None else k][:3]
-            x = x[:, 0]
+        k = self._last_not_after(t_s)
+        step = self._history[max(k, 0)]
+        t_k, x, P = step.t_state_s, step.x[:, 0], step.P
         dt = t_s - t_k
         return FusedEstimate(t_s, x[:3] + x[3:6] * dt, x[3:6].copy(), P[:3, :3] + P[3:6, 3:6] * dt * dt, P[3:6, 3:6].copy())
 
     def prior(self, t_s: float | None = None) -> PositionPrior:
-        """Where the next frame should be, for the localiser's search (propagated to ``t_s`` by velocity)."""
-        est = self.estimate()
-        dt = 0.0 if t_s is None else max(t_s - est.t_s, 0.0)
-        p = est.p_ned_m + est.v_ned_m_s * dt
-        return PositionPrior(p, est.sigma_h_m + est.sigma_speed_m_s * dt)
+        """Where the vehicle is at ``t_s`` (default: the state's time), for the localiser's search."""
+        est = self.estimate() if t_s is None else self.estimate_at(t_s)
+        return PositionPrior(est.p_ned_m, est.sigma_h_m)
 
     @property
     def accel_bias_body_m_s2(self) -> np.ndarray:
@@ -228,30 +268,52 @@ class NavFilter:
         self._ekf.predict(u)
         self.t_s = imu.t_s
 
-    def _last_not_after(self, t_s: float) -> int | None:
-        """Index of the last history entry not later than ``t_s`` (None when the history starts after it)."""
-        k = bisect.bisect_right(self._history, t_s, key=lambda h: h[0]) - 1
-        return None if k < 0 else k
+    def _last_not_after(self, t_s: float) -> int:
+        """Index of the last history step not later than ``t_s`` (-1 when the history starts after it)."""
+        return bisect.bisect_right(self._history, t_s, key=lambda s: s.t_s) - 1
 
-    def _rewind(self, t_s: float) -> list | None:
-        """Restore the state at ``t_s`` (the last sample not after it); return the IMU samples to replay."""
-        if t_s >= self.t_s:
-            return []
+    def _rewind(self, t_s: float) -> list[_Step] | None:
+        """Restore the state after the last step not later than ``t_s``; return the later steps, to be taken
+        again after the measurement at ``t_s`` (None: ``t_s`` is older than the history)."""
         hist = self._history
         k = self._last_not_after(t_s)
-        if k is None:
+        if k < 0:
             return None
-        t_k, x_k, P_k, _ = hist[k]
-        replay = [h[3] for h in list(hist)[k + 1 :]]
-        for _ in range(len(hist) - k - 1):
-            hist.pop()
-        self._ekf.x, self._ekf.P, self.t_s = x_k.copy(), P_k.copy(), t_k
-        return replay
+        later = hist[k + 1 :]
+        if later:
+            del hist[k + 1 :]
+            step = hist[k]
+            self._ekf.x, self._ekf.P, self.t_s = step.x.copy(), step.P.copy(), step.t_state_s
+        return later
 
-    def _replay(self, samples: list) -> None:
-        for imu in samples:
-            self._predict(imu)
-            self._history.append((self.t_s, self._ekf.x.copy(), self._ekf.P.copy(), imu))
+    def _take(self, kind: str, t_s: float, data: tuple) -> None:
+        """Take one step (propagate, update or re-initialise) and append it to the history."""
+        if kind == "imu":
+            self._predict(data[0])
+        elif kind == "position":
+            p_ne_m, cov_ne_m2, visual = data
+            H = _H_ne(t_s - self.t_s, visual)
+            self._ekf.update(p_ne_m.reshape(2, 1), lambda x: H, lambda x: H @ x, R=cov_ne_m2)
+        elif kind == "altitude":
+            alt_m, sigma_m = data
+            H = _H_down(t_s - self.t_s)
+            self._ekf.update(np.array([[-alt_m]]), lambda x: H, lambda x: H @ x, R=np.array([[sigma_m**2]]))
+        elif kind == "reinit":
+            self._reinitialise(*data)
+        else:
+            raise ValueError(f"unknown filter step {kind!r}")
+        self._history.append(_Step(t_s, self.t_s, kind, data, self._ekf.x.copy(), self._ekf.P.copy()))
+
+    def _retake(self, steps: list[_Step]) -> None:
+        """Take ``steps`` again, in their order, as they were decided (an update keeps its gate decision); then
+        drop the steps older than ``history_s``, keeping one to roll back to."""
+        for step in steps:
+            self._take(step.kind, step.t_s, step.data)
+        self.n_replayed += len(steps)
+        hist = self._history
+        k = self._last_not_after(self.t_s - self.cfg.history_s)
+        if k > 0:
+            del hist[:k]
 
     def _rejected_run_agrees(self) -> bool:
         """True when the last ``reinit_count`` rejected fixes, within ``reinit_window_s``, agree with each other
@@ -270,7 +332,8 @@ class NavFilter:
                 return False
         return True
 
-    def _reinitialise(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray) -> None:
+    def _reinitialise(self, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray) -> None:
+        """Put the position on a fix, forget the shared fix error, loosen the velocity."""
         x, P = self._ekf.x, self._ekf.P
         x[0:2, 0] = p_ne_m
         x[9:11, 0] = 0.0
@@ -280,9 +343,6 @@ class NavFilter:
         P[0:2, 0:2] = cov_ne_m2
         P[9:11, 9:11] = np.eye(2) * self.cfg.fix_bias_sigma_m**2
         P[3:5, 3:5] += np.eye(2) * self.cfg.reinit_speed_sigma_m_s**2
-        self._rejected_run.clear()
-        self.n_reinit += 1
-        log.warning("filter re-initialised at t=%.3f s on %d consistent rejected fixes", t_s, self.cfg.reinit_count)
 
     def _decide(self, d: GateDecision) -> GateDecision:
         if d.accepted:
