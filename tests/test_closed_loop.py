@@ -43,8 +43,10 @@ def stop(*procs: subprocess.Popen | None) -> None:
             p.wait(timeout=20)
 
 
-@pytest.mark.slow
-def test_short_flight_lands_home_on_gps2(tmp_path):
+@pytest.fixture(scope="module")
+def short_flight(tmp_path_factory):
+    """A short survey on the emulator, GPS1 failing at 20 s, flown by `auxgps run`."""
+    tmp_path = tmp_path_factory.mktemp("short_flight")
     port = free_port()
     emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "6", "--fail-gps1-at", "20", "--max-seconds", "150")
     run = start_run(port, tmp_path / "run", "--duration", "150", "--save-map", str(tmp_path / "map.npz"))
@@ -52,6 +54,12 @@ def test_short_flight_lands_home_on_gps2(tmp_path):
         emu.wait(timeout=170)
     finally:
         stop(emu, run)
+    return tmp_path
+
+
+@pytest.mark.slow
+def test_short_flight_lands_home_on_gps2(short_flight):
+    tmp_path = short_flight
     log = json.loads((tmp_path / "emu.json").read_text())
     assert log["exit_reason"] == "landed"
     assert log["switch_to_gps2_t_s"] - log["failure_t_s"] <= 1.0
@@ -111,10 +119,11 @@ def test_link_ignores_garbage_and_other_systems():
     os.environ.setdefault("MAVLINK20", "1")
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-    from auxgps.io.link import Attitude, MavLink
+    from auxgps.io.link import Attitude, Decoder, MavLink
 
     got = []
-    link = MavLink("tcp:127.0.0.1:1", got.append)
+    decoder = Decoder()
+    link = MavLink("tcp:127.0.0.1:1", lambda msg, arrival_s: got.append(decoder(msg, arrival_s)))
     ours, theirs = mavlink.MAVLink(None, srcSystem=1, srcComponent=1), mavlink.MAVLink(None, srcSystem=7, srcComponent=1)
     hb = ours.heartbeat_encode(2, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0).pack(ours)
     att = ours.attitude_encode(100, 0.1, 0.2, 0.3, 0, 0, 0).pack(ours)
@@ -127,4 +136,6 @@ def test_link_ignores_garbage_and_other_systems():
         msg = parser.parse_char(stream[i : i + 1])
         if msg is not None:
             link._handle(msg, 1.0)
+    assert len(got) == 2 and got[0] is None  # the autopilot's HEARTBEAT, which decodes to no record
+    got = got[1:]
     assert len(got) == 1 and isinstance(got[0], Attitude) and np.allclose(got[0].euler_rad, [0.1, 0.2, 0.3], atol=1e-6)

@@ -172,6 +172,29 @@ class LandmarkMap:
         self.chi2_mean = np.zeros(capacity, np.float16)
         self.n_visible = np.zeros(capacity, np.uint16)
 
+    @classmethod
+    def from_columns(cls, columns: dict[str, np.ndarray], capacity: int | None = None) -> "LandmarkMap":
+        """A map holding the given rows of every column (a map file's, or another map's), its index built now.
+
+        ``columns``: each of :data:`COLUMNS` with the same number of rows; ``capacity``: rows to allocate (at least
+        that number)."""
+        missing = [name for name in cls.COLUMNS if name not in columns]
+        if missing:
+            raise ValueError(f"landmark columns missing: {', '.join(missing)}")
+        n = len(columns["n_seen"])
+        if any(len(columns[name]) != n for name in cls.COLUMNS):
+            raise ValueError("landmark columns of different lengths")
+        lm = cls(capacity=max(n, capacity or 0, 16))
+        for name in cls.COLUMNS:
+            getattr(lm, name)[:n] = columns[name]
+        lm._n = n
+        lm.sync_index()  # built here, so that the first frame is not the one that pays for it
+        return lm
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """The used rows of every column (views, not copies)."""
+        return {name: getattr(self, name)[: self._n] for name in self.COLUMNS}
+
     def __len__(self) -> int:
         return self._n
 

@@ -21,6 +21,7 @@ from auxgps.core.camera import CameraPose, PinholeCamera
 from auxgps.core.features import Features, hamming, pairs_within
 from auxgps.core.geometry import cross_matrix
 from auxgps.core.landmarks import LandmarkMap
+from auxgps.core.stopwatch import null_stopwatch
 
 
 @dataclass(frozen=True)
@@ -168,11 +169,12 @@ def _spread_by_rivals(best: _Reading, readings: list[_Reading], ll: np.ndarray) 
 class Localiser:
     """Locates frames against a :class:`LandmarkMap`."""
 
-    def __init__(self, cfg, camera: PinholeCamera, R_body_cam: np.ndarray, landmarks: LandmarkMap) -> None:
+    def __init__(self, cfg, camera: PinholeCamera, R_body_cam: np.ndarray, landmarks: LandmarkMap, stopwatch=None) -> None:
         self.cfg = cfg
         self.camera = camera
         self.R_body_cam = R_body_cam
         self.map = landmarks
+        self.stopwatch = stopwatch if stopwatch is not None else null_stopwatch  # instrumentation a benchmark passes in; times nothing here
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=False)
         half_diag = np.hypot(camera.width_px, camera.height_px) / 2.0 / camera.focal_px
         self._footprint_tan = half_diag + 0.3
@@ -224,10 +226,12 @@ class Localiser:
         p_cand_ned_m = self.map.p_ned_m[cand].astype(float)  # (M, 3) m: for the guided match and the readings
         if tracking:
             pose = CameraPose(np.array([prior.p_ned_m[0], prior.p_ned_m[1], -alt_m]), R_ned_cam)
-            feat_i, lm_id = self._match_guided(features, cand, p_cand_ned_m, pose, radius_px)
+            with self.stopwatch("matching"):
+                feat_i, lm_id = self._match_guided(features, cand, p_cand_ned_m, pose, radius_px)
             min_inliers, margin = cfg.min_inliers, cfg.ambiguity_margin
         else:
-            feat_i, lm_id = self._match(features, cand, cfg.k_best_acquire)
+            with self.stopwatch("matching"):
+                feat_i, lm_id = self._match(features, cand, cfg.k_best_acquire)
             min_inliers, margin = cfg.min_inliers_acquire, cfg.ambiguity_margin_acquire
         if len(feat_i) < cfg.min_inliers:
             return NoFix(t_s, f"{len(feat_i)} descriptor matches", n_correspondences=len(feat_i), n_features=n_feat)

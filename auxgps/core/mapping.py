@@ -18,6 +18,7 @@ from auxgps.core.features import Features, hamming, pairs_within
 from auxgps.core.geometry import intersect_rays_with_horizontal_plane
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.nav import NavSample
+from auxgps.core.stopwatch import null_stopwatch
 
 
 @dataclass(frozen=True)
@@ -52,8 +53,9 @@ def ray_mahalanobis2(L: np.ndarray, cov_L: np.ndarray, c: np.ndarray, d: np.ndar
 class Mapper:
     """Builds a :class:`LandmarkMap` from frames with known GPS poses."""
 
-    def __init__(self, cfg, camera: PinholeCamera, R_body_cam: np.ndarray, landmarks: LandmarkMap) -> None:
+    def __init__(self, cfg, camera: PinholeCamera, R_body_cam: np.ndarray, landmarks: LandmarkMap, stopwatch=None) -> None:
         self.cfg = cfg
+        self.stopwatch = stopwatch if stopwatch is not None else null_stopwatch  # instrumentation a benchmark passes in; times nothing here
         self.camera = camera
         self.R_body_cam = R_body_cam
         self.map = landmarks
@@ -77,7 +79,8 @@ class Mapper:
 
         # Candidates: landmarks whose projection falls in the image.
         reach = max(nav.alt_m, 1.0) * self._footprint_tan + 5.0
-        cand = self.map.ids_in_box((c[0] - reach, c[0] + reach), (c[1] - reach, c[1] + reach))
+        with self.stopwatch("matching"):
+            cand = self.map.ids_in_box((c[0] - reach, c[0] + reach), (c[1] - reach, c[1] + reach))
         matched_feat = matched_lm = np.zeros(0, int)
         if len(cand):
             uv_lm, in_front = pose.project(self.camera, self.map.p_ned_m[cand].astype(float))
@@ -85,7 +88,8 @@ class Mapper:
             cand, uv_lm = cand[keep], uv_lm[keep]
             self.map.count_visible(cand[self.camera.in_image(uv_lm)])
             if len(cand):
-                matched_feat, matched_lm, chi2 = self._guided_match(features, cand, uv_lm, rays, c, sigma_px)
+                with self.stopwatch("matching"):
+                    matched_feat, matched_lm, chi2 = self._guided_match(features, cand, uv_lm, rays, c, sigma_px)
 
         # Fuse matches as ray observations.
         if len(matched_feat):

@@ -2,13 +2,15 @@
 
 A simulated mapping survey and a different positioning flight are flown over a feature-rich world (a procedural
 gravel ground and the thesis' four 0.5 m cubes); every frame is rendered before it is timed, so rendering is
-never counted. Each frame then goes through the pipeline with ``time.perf_counter`` around its stages:
+never counted. Each frame then goes through :class:`auxgps.core.estimator.Estimator`, the code ``auxgps run``
+flies, with a :class:`StageClock` passed in as its stopwatch; the stages are exclusive times:
 
 - detection: :meth:`FeatureDetector.detect` (grey conversion, ORB, Harris filter, sub-pixel refinement);
 - matching: finding candidate landmarks (the spatial index) and pairing features with them;
-- solving: for positioning, the rest of :meth:`Localiser.locate` (consensus, refinement, rival check); for
-  mapping, the rest of :meth:`Mapper.process` (projection, fusing observations, adding landmarks);
-- filtering: :meth:`NavFilter.update_position` with the frame's fix (roll back, update, replay the IMU).
+- solving: the rest of :meth:`Localiser.locate` (consensus, refinement, rival check) and, for a mapping frame,
+  the rest of :meth:`Mapper.process` (projection, fusing observations, adding landmarks) and the self-check
+  locating that a mapping frame also gets;
+- filtering: the fix into the filter (roll back, update, take the later steps again).
 
 The positioning flight is replayed against the map the survey built, and against that map padded with
 synthetic landmarks (random descriptors, usable, at the real map's density) to each size in ``map_sizes``,
@@ -28,23 +30,23 @@ from __future__ import annotations
 import os
 import platform
 import time
-from dataclasses import asdict, dataclass, field, replace
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
 from typing import Callable, Protocol
 
 import cv2
 import numpy as np
 
 from auxgps.config import PipelineConfig
-from auxgps.core.camera import CameraPose, camera_from_config
-from auxgps.core.features import FeatureDetector
-from auxgps.core.fusion import ImuSample, NavFilter
-from auxgps.core.geometry import R_body_cam_from_mount, R_ned_body_from_euler
-from auxgps.core.landmarks import LandmarkMap
-from auxgps.core.localise import Fix, Localiser
-from auxgps.core.mapping import Mapper
-from auxgps.core.nav import NavSample
 from auxgps.config import parse_as
-from auxgps.sim.flight import SimConfig, Telemetry, fly, imu_bias, lawnmower_waypoints, sense, sense_imu
+from auxgps.core.camera import CameraPose, camera_from_config
+from auxgps.core.estimator import Estimator, EstimatorOptions, FrameResult
+from auxgps.core.events import Frame
+from auxgps.core.geometry import R_body_cam_from_mount
+from auxgps.core.landmarks import LandmarkMap
+from auxgps.core.localise import Fix
+from auxgps.sim.flight import SimConfig, Telemetry, fly, imu_bias, lawnmower_waypoints, sense
+from auxgps.sim.sensors import Sensors
 from auxgps.sim.render import Renderer
 from auxgps.sim.texture import gravel_texture
 from auxgps.sim.world import Cube, World, _color_to_bgr
@@ -173,25 +175,39 @@ def bench_world(sim: SimConfig, cfg: BenchConfig) -> World:
 # -- timing helpers ------------------------------------------------------------------------------------------
 
 
-class _Clock:
-    """Accumulates the time spent inside wrapped methods, ms, until read and reset."""
+class StageClock:
+    """The benchmark's stopwatch for the estimator's stages: each stage's exclusive time, ms (a stage inside
+    another, such as matching inside locating, is not counted in the outer one), until read and reset."""
 
     def __init__(self) -> None:
-        self.ms = 0.0
+        self.ms: dict[str, float] = {}
+        self._stack: list[list] = []  # [stage, time it last (re)started]
 
-    def wrap(self, fn: Callable) -> Callable:
-        def timed(*args, **kwargs):
-            t0 = time.perf_counter()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                self.ms += (time.perf_counter() - t0) * 1e3
+    @contextmanager
+    def __call__(self, stage: str):
+        now = time.perf_counter()
+        if self._stack:
+            outer = self._stack[-1]
+            self.ms[outer[0]] = self.ms.get(outer[0], 0.0) + (now - outer[1]) * 1e3
+        self._stack.append([stage, now])
+        try:
+            yield
+        finally:
+            now = time.perf_counter()
+            name, t0 = self._stack.pop()
+            self.ms[name] = self.ms.get(name, 0.0) + (now - t0) * 1e3
+            if self._stack:
+                self._stack[-1][1] = now
 
-        return timed
-
-    def take(self) -> float:
-        ms, self.ms = self.ms, 0.0
-        return ms
+    def take(self) -> dict[str, float]:
+        """The stage times since the last take, as the benchmark's stages (detection, matching, solving,
+        filtering), ms."""
+        ms, self.ms = self.ms, {}
+        row = {"detection": ms.get("detection", 0.0), "matching": ms.get("matching", 0.0),
+               "solving": ms.get("locating", 0.0) + ms.get("mapping", 0.0)}
+        if "filtering" in ms:
+            row["filtering"] = ms["filtering"]
+        return row
 
 
 def _stats_ms(x) -> dict:
@@ -213,181 +229,154 @@ def _stage_table(rows: list[dict]) -> dict:
 # -- the flights -----------------------------------------------------------------------------------------------
 
 
-@dataclass
-class _Pipeline:
-    camera: object
-    R_body_cam: np.ndarray
-    detector: FeatureDetector
+def _render(renderer: Renderer, traj, i: int, R_body_cam: np.ndarray, effects, rng) -> np.ndarray:
+    pose = CameraPose(traj.p_ned_m[i].copy(), traj.R_ned_body(i) @ R_body_cam)
+    return renderer.render(pose, effects, rng).image_bgr
 
 
-def _pipeline_parts(pipeline: PipelineConfig) -> _Pipeline:
-    m = pipeline.mount
-    return _Pipeline(
-        camera_from_config(pipeline.camera),
-        R_body_cam_from_mount(*np.deg2rad([m.roll_deg, m.pitch_deg, m.yaw_deg])),
-        FeatureDetector(pipeline.detector),
-    )
-
-
-@dataclass
-class _PositioningScript:
-    """The positioning flight, sensed once: per simulation step its IMU, barometer and GPS samples, and the
-    frames (images rendered in advance) with their telemetry and truth. Replayed identically for every map."""
-
-    t_s: np.ndarray
-    imu: dict = field(default_factory=dict)  # step -> ImuSample
-    baro: dict = field(default_factory=dict)  # step -> alt m
-    gps: dict = field(default_factory=dict)  # step -> (2,) m
-    frames: dict = field(default_factory=dict)  # step -> (image, Telemetry, truth ne (2,))
-    p0_ned_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-
-def _map_flight(world, pipeline, sim, cfg, parts, methods, rng_seq, progress):
-    """Fly the mapping survey; time our mapping of every frame; let each method learn from it too."""
-    rng_fly, rng_tel, rng_img = (np.random.default_rng(s) for s in rng_seq.spawn(3))
-    renderer = Renderer(world, parts.camera)
+def _map_flight(world, pipeline, sim, cfg, methods, rng_seq, progress):
+    """Fly the mapping survey through the estimator (GPS1 throughout), timing each frame's stages; let each
+    method learn from the same frames. Returns the map, stage rows, features per frame, the methods' rows."""
+    rng_fly, rng_tel, rng_img, rng_imu, rng_method = (np.random.default_rng(s) for s in rng_seq.spawn(5))
+    clock = StageClock()
+    est = Estimator(pipeline, frame=world.frame, stopwatch=clock)
+    renderer = Renderer(world, est.camera)
     effects = sim.image_effects()
-    landmarks = LandmarkMap()
-    mapper = Mapper(pipeline, parts.camera, parts.R_body_cam, landmarks)
-    match_clock = _Clock()
-    landmarks.ids_in_box = match_clock.wrap(landmarks.ids_in_box)
-    mapper._guided_match = match_clock.wrap(mapper._guided_match)
     traj = fly(lawnmower_waypoints(sim.mapping, cfg.alt_m), sim.mapping.speed_m_s, sim.vehicle, rng_fly, sim.dt_s)
+    sensors = Sensors(traj, world.frame, sim.noise, rng_tel=rng_tel, rng_imu=rng_imu, bias_body_m_s2=imu_bias(sim.noise, rng_imu),
+                      gps1_lag_s=est.options.gps1_lag_s)
+    frame_every = max(1, int(round(1.0 / (cfg.mapping_fps * sim.dt_s))))
     rows, n_feat, method_rows = [], [], {m.name: [] for m in methods}
-    for t in np.arange(0.0, traj.duration_s, 1.0 / cfg.mapping_fps):
-        i = traj.index_at(t)
-        pose = CameraPose(traj.p_ned_m[i].copy(), traj.R_ned_body(i) @ parts.R_body_cam)
-        image = renderer.render(pose, effects, rng_img).image_bgr
-        tel = sense(traj, i, sim.noise, rng_tel)
-        nav = NavSample(tel.t_s, tel.p_gps_ned_m, tel.alt_m, tel.R_ned_body)
-        t0 = time.perf_counter()
-        feats = parts.detector.detect(image, tel.R_ned_body @ parts.R_body_cam)
-        t1 = time.perf_counter()
-        mapper.process(feats, nav)
-        t2 = time.perf_counter()
-        matching = match_clock.take()
-        rows.append({"detection": (t1 - t0) * 1e3, "matching": matching, "solving": (t2 - t1) * 1e3 - matching})
-        n_feat.append(len(feats))
+    for i in range(len(traj.t_s)):
+        for event in sensors.events_at(i):
+            est.feed(event)
+        if i % frame_every:
+            continue
+        image = _render(renderer, traj, i, est.R_body_cam, effects, rng_img)
+        clock.take()
+        res = est.on_frame(Frame(float(traj.t_s[i]), image))
+        row = clock.take()
+        if res.mapped is not None:
+            rows.append(row)
+            n_feat.append(len(res.features))
+        tel = sense(traj, i, sim.noise, rng_method)  # the methods compared get the autopilot's telemetry as it was
         for m in methods:
             method_rows[m.name].append(m.map_frame(image, tel))
         if progress:
             progress()
-    del landmarks.ids_in_box  # the instance's own method again
-    return landmarks, rows, n_feat, method_rows
+    return est.landmarks, rows, n_feat, method_rows
 
 
-def _positioning_script(world, pipeline, sim, cfg, parts, rng_seq, progress) -> _PositioningScript:
-    """Fly and sense the positioning flight once; render its GPS-denied frames (untimed)."""
-    rng_fly, rng_tel, rng_img, rng_imu = (np.random.default_rng(s) for s in rng_seq.spawn(4))
-    renderer = Renderer(world, parts.camera)
+@dataclass
+class _PositioningScript:
+    """The positioning flight, sensed once: per simulation step the autopilot's events, and the frames (images
+    rendered in advance) with the telemetry the methods compared get and the truth. Replayed identically for every
+    map."""
+
+    t_s: np.ndarray
+    events: dict = field(default_factory=dict)  # step -> [telemetry events]
+    frames: dict = field(default_factory=dict)  # step -> (image, Telemetry, truth ne (2,))
+
+
+def _positioning_script(world, pipeline, sim, cfg, rng_seq, progress) -> _PositioningScript:
+    """Fly and sense the positioning flight once; render its frames from shortly after GPS1's loss (untimed).
+
+    Frames start ``POSITIONING_FROM_S`` after the loss, once GPS1's first no-fix report has reached the estimator
+    (its lag): every frame timed is a positioning frame, and none feeds the padded maps."""
+    rng_fly, rng_tel, rng_img, rng_imu, rng_method = (np.random.default_rng(s) for s in rng_seq.spawn(5))
+    camera = camera_from_config(pipeline.camera)
+    m = pipeline.mount
+    R_body_cam = R_body_cam_from_mount(*np.deg2rad([m.roll_deg, m.pitch_deg, m.yaw_deg]))
+    renderer = Renderer(world, camera)
     effects = sim.image_effects()
     traj = fly(lawnmower_waypoints(sim.positioning, cfg.alt_m), sim.positioning.speed_m_s, sim.vehicle, rng_fly, sim.dt_s)
-    noise, den = sim.noise, sim.denial
-    dt = traj.t_s[1] - traj.t_s[0]
-    every = lambda rate_hz: max(1, int(round(1.0 / (rate_hz * dt))))  # noqa: E731
-    imu_every, baro_every, gps_every, frame_every = every(noise.imu_rate_hz), every(noise.baro_rate_hz), every(noise.gps_rate_hz), every(cfg.fps)
-    bias = imu_bias(noise, rng_imu)
-    script = _PositioningScript(traj.t_s, p0_ned_m=traj.p_ned_m[0] + rng_tel.standard_normal(3) * noise.gps_horizontal_m)
+    den = sim.denial
+    sensors = Sensors(traj, world.frame, sim.noise, rng_tel=rng_tel, rng_imu=rng_imu, bias_body_m_s2=imu_bias(sim.noise, rng_imu),
+                      gps1_lag_s=EstimatorOptions().gps1_lag_s, gps_denied_from_s=den.gps_until_s)
+    frame_every = max(1, int(round(1.0 / (cfg.fps * sim.dt_s))))
+    script = _PositioningScript(traj.t_s)
     for i in range(len(traj.t_s)):
-        t = float(traj.t_s[i])
-        denied = t >= den.gps_until_s
-        if i % imu_every == 0:
-            t_imu, f_body, euler = sense_imu(traj, i, noise, bias, rng_imu)
-            script.imu[i] = ImuSample(t_imu, f_body, R_ned_body_from_euler(*euler))
-        if i % baro_every == 0:
-            script.baro[i] = -traj.p_ned_m[i, 2] + noise.altitude_m * rng_tel.standard_normal()
-        if not denied and i % gps_every == 0:
-            script.gps[i] = traj.p_ned_m[i, :2] + rng_tel.standard_normal(2) * noise.gps_horizontal_m
-        if denied and i % frame_every == 0:
-            tel = sense(traj, i, noise, rng_tel, gps_ok=False)
-            pose = CameraPose(traj.p_ned_m[i].copy(), traj.R_ned_body(i) @ parts.R_body_cam)
-            script.frames[i] = (renderer.render(pose, effects, rng_img).image_bgr, tel, traj.p_ned_m[i, :2].copy())
+        script.events[i] = sensors.events_at(i)
+        if traj.t_s[i] >= den.gps_until_s + POSITIONING_FROM_S and i % frame_every == 0:
+            tel = sense(traj, i, sim.noise, rng_method, gps_ok=False)
+            script.frames[i] = (_render(renderer, traj, i, R_body_cam, effects, rng_img), tel, traj.p_ned_m[i, :2].copy())
             if progress:
                 progress()
     return script
 
 
+#: Frames of the positioning flight are timed from this long after GPS1's loss, s (see _positioning_script).
+POSITIONING_FROM_S = 0.3
+
+
 @dataclass
 class _Replay:
-    rows: list  # per denied frame: stage ms
+    rows: list  # per frame: stage ms
     n_features: list
     fix_err_m: list  # per fix
     latency_ms: list  # per accepted fix
     n_frames: int
     n_fixes: int
-    cpu_ms: list = field(default_factory=list)  # per frame, this thread's CPU time for detection and locating
+    cpu_ms: list = field(default_factory=list)  # per frame, this thread's CPU time for beginning and processing it
 
 
 class _Run:
-    """One map's replay of the positioning flight: its localiser, filter, fixes waiting for the filter, records."""
+    """One map's replay of the positioning flight: its estimator and stage clock, fixes waiting to be finished."""
 
-    def __init__(self, landmarks: LandmarkMap, script: _PositioningScript, pipeline, sim, parts, seed: int) -> None:
+    def __init__(self, landmarks: LandmarkMap, world, pipeline, seed: int) -> None:
         self.map = landmarks
-        self.localiser = Localiser(pipeline, parts.camera, parts.R_body_cam, landmarks)
-        self.match_clock = _Clock()
-        for name in ("_match_guided", "_match"):
-            setattr(self.localiser, name, self.match_clock.wrap(getattr(self.localiser, name)))
-        self.nav = NavFilter(pipeline.fusion, 0.0, script.p0_ned_m, np.zeros(3), sim.noise.gps_horizontal_m * 2, 0.1)
+        self.clock = StageClock()
+        self.est = Estimator(pipeline, landmarks=landmarks, frame=world.frame, stopwatch=self.clock)
         # The GPS_INPUT timer runs on its own clock (a thread of the companion), not locked to the camera's: the
         # wait for its next tick after a fix is ready is uniform over one period, drawn here per fix (seeded).
         self.rng_tick = np.random.default_rng(seed + 7)
-        self.pending: list[tuple[float, Fix, int]] = []
+        self.pending: list[tuple[float, object, int]] = []  # (finish time, work, its row)
         self.rec = _Replay([], [], [], [], 0, 0)
 
 
-def _replay_positioning(script: _PositioningScript, maps: list[LandmarkMap], pipeline, sim, cfg, parts, seed, progress) -> list[_Replay]:
-    """Run the positioning flight against each of ``maps``: filter on IMU, barometer, GPS until denial, then fixes.
+def _replay_positioning(script: _PositioningScript, world, maps: list[LandmarkMap], pipeline, sim, cfg, seed, progress) -> list[_Replay]:
+    """Run the positioning flight against each of ``maps``, each through its own estimator.
 
     The maps are replayed in lockstep, each frame on every map in turn (starting with a different map at each
-    frame), so that a change in the machine's load while the benchmark runs falls on all of them alike.
+    frame), so that a change in the machine's load while the benchmark runs falls on all of them alike. A frame is
+    begun and processed at its capture and finished (its fix fused) ``fix_latency_s`` later, as in ``eval``.
     """
-    noise = pipeline.noise
     period_s = 1.0 / cfg.output_rate_hz
-    runs = [_Run(m, script, pipeline, sim, parts, seed) for m in maps]
+    runs = [_Run(m, world, pipeline, seed) for m in maps]
     n_frame = 0
     for i, t in enumerate(script.t_s):
         t = float(t)
         for run in runs:
-            nav, rec = run.nav, run.rec
-            if i in script.imu:
-                nav.propagate(script.imu[i])
-            if i in script.baro:
-                nav.update_altitude(t, script.baro[i], noise.altitude_m)
-            if i in script.gps:
-                nav.update_position(t, script.gps[i], np.eye(2) * noise.gps_horizontal_m**2)
-            while run.pending and run.pending[0][0] <= t:
-                _, fix, k = run.pending.pop(0)
-                t0 = time.perf_counter()
-                decision = nav.update_position(fix.t_s, fix.p_ned_m[:2], fix.cov_ned_m2[:2, :2], visual=True)
-                rec.rows[k]["filtering"] = (time.perf_counter() - t0) * 1e3
-                if decision.accepted:
-                    processing_ms = sum(rec.rows[k].values())
-                    rec.latency_ms.append(processing_ms + run.rng_tick.uniform(0.0, period_s) * 1e3)
+            for event in script.events[i]:
+                run.est.feed(event)
+            while run.pending and run.pending[0][0] <= t + 1e-9:
+                _, work, k = run.pending.pop(0)
+                run.clock.take()
+                res = run.est.finish_frame(work)
+                row = run.rec.rows[k]
+                row["filtering"] = run.clock.take().get("filtering", 0.0)
+                if res.decision is not None and res.decision.accepted:
+                    run.rec.latency_ms.append(sum(row.values()) + run.rng_tick.uniform(0.0, period_s) * 1e3)
         if i not in script.frames:
             continue
         image, tel, truth_ne = script.frames[i]
         for j in range(len(runs)):
             run = runs[(j + n_frame) % len(runs)]
             rec = run.rec
-            prior = run.nav.prior(t)
+            run.clock.take()
             c0 = time.thread_time()
-            t0 = time.perf_counter()
-            cand = run.localiser.candidates(tel.alt_m, prior)
-            tc = time.perf_counter()
-            feats = parts.detector.detect(image, tel.R_ned_body @ parts.R_body_cam, run.localiser.detection_scale(tel.alt_m, prior, cand))
-            t1 = time.perf_counter()
-            res = run.localiser.locate(feats, t, tel.R_ned_body, tel.alt_m, prior, cand)
-            t2 = time.perf_counter()
+            job = run.est.begin_frame(Frame(t, image))
+            if isinstance(job, FrameResult):
+                continue
+            work = run.est.process_frame(job)
             rec.cpu_ms.append((time.thread_time() - c0) * 1e3)
-            pairing = run.match_clock.take()  # inside locate
-            rec.rows.append({"detection": (t1 - tc) * 1e3, "matching": (tc - t0) * 1e3 + pairing, "solving": (t2 - t1) * 1e3 - pairing, "filtering": 0.0})
-            rec.n_features.append(len(feats))
+            rec.rows.append({**run.clock.take(), "filtering": 0.0})
+            rec.n_features.append(len(work.features))
             rec.n_frames += 1
-            if isinstance(res, Fix):
+            if isinstance(work.located, Fix):
                 rec.n_fixes += 1
-                rec.fix_err_m.append(float(np.linalg.norm(res.p_ned_m[:2] - truth_ne)))
-                # The fix reaches the filter when the simulation says (fix_latency_s); its processing is measured.
-                run.pending.append((t + sim.denial.fix_latency_s, res, len(rec.rows) - 1))
+                rec.fix_err_m.append(float(np.linalg.norm(work.located.p_ned_m[:2] - truth_ne)))
+            run.pending.append((t + sim.denial.fix_latency_s, work, len(rec.rows) - 1))
         n_frame += 1
         if progress:
             progress()
@@ -411,10 +400,7 @@ def padded_map(real: LandmarkMap, n_total: int, pipeline: PipelineConfig, rng: n
     lo, hi = np.percentile(p[:, :2], 0.5, axis=0), np.percentile(p[:, :2], 99.5, axis=0)
     centre, side_real = (lo + hi) / 2.0, max(float(np.sqrt(np.prod(hi - lo))), 1.0)
     side = side_real * np.sqrt(n_total / n_real)
-    out = LandmarkMap(capacity=max(n_total, 1))
-    for name in LandmarkMap.COLUMNS:
-        getattr(out, name)[:n_real] = getattr(real, name)[:n_real]
-    out._n = n_real
+    out = LandmarkMap.from_columns(real.columns(), capacity=n_total)
     n_pad = n_total - n_real
     if n_pad:
         pts = np.zeros((0, 2))
@@ -479,13 +465,12 @@ def run_bench(pipeline: PipelineConfig, sim: SimConfig, cfg: BenchConfig, method
     say = progress or (lambda *a, **k: None)
     seq = np.random.SeedSequence(cfg.seed)
     seq_map, seq_pos, seq_pad = seq.spawn(3)
-    parts = _pipeline_parts(pipeline)
     world = bench_world(sim, cfg)
 
     say("mapping flight")
-    real, map_rows, map_feat, method_map_rows = _map_flight(world, pipeline, sim, cfg, parts, methods, seq_map, progress and (lambda: say(None)))
+    real, map_rows, map_feat, method_map_rows = _map_flight(world, pipeline, sim, cfg, methods, seq_map, progress and (lambda: say(None)))
     say("positioning flight (rendering)")
-    script = _positioning_script(world, pipeline, sim, cfg, parts, seq_pos, progress and (lambda: say(None)))
+    script = _positioning_script(world, pipeline, sim, cfg, seq_pos, progress and (lambda: say(None)))
 
     results: dict[str, dict] = {}
     rng_pad = np.random.default_rng(seq_pad)
@@ -497,7 +482,7 @@ def run_bench(pipeline: PipelineConfig, sim: SimConfig, cfg: BenchConfig, method
         say(f"padding the map to {n} landmarks")
         maps[str(n)] = padded_map(real, n, pipeline, rng_pad)
     say(f"positioning frames on the real map ({len(real)} landmarks) and the padded ones, in lockstep")
-    recs = _replay_positioning(script, list(maps.values()), pipeline, sim, cfg, parts, cfg.seed, progress and (lambda: say(None)))
+    recs = _replay_positioning(script, world, list(maps.values()), pipeline, sim, cfg, cfg.seed, progress and (lambda: say(None)))
     for (name, lm), rec in zip(maps.items(), recs):
         results[name] = _replay_summary(rec, lm)
     results = {k: results[k] for k in ["real", *[str(n) for n in sorted(cfg.map_sizes)]]}

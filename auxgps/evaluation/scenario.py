@@ -1,7 +1,8 @@
 """One evaluation run: a mapping survey with GPS, then a different positioning flight without it.
 
-The estimator (detector, :class:`Mapper`, :class:`Localiser`) sees only rendered frames and noisy telemetry;
-the truth (true poses, the renderer's 3D points) is used here only to score what it returned.
+The estimator (:class:`auxgps.core.estimator.Estimator`, the one ``auxgps run`` flies) sees only rendered frames
+and noisy telemetry as events; the truth (true poses, the renderer's 3D points) is used here only to score what it
+returned.
 """
 
 from __future__ import annotations
@@ -13,14 +14,11 @@ import numpy as np
 
 from auxgps.config import PipelineConfig
 from auxgps.core.camera import CameraPose, PinholeCamera, camera_from_config
-from auxgps.core.features import FeatureDetector
-from auxgps.core.geometry import R_body_cam_from_mount, R_ned_body_from_euler
-from auxgps.core.landmarks import LandmarkMap
-from auxgps.core.localise import Fix, Localiser
-from auxgps.core.mapping import Mapper
-from auxgps.core.nav import NavSample
-from auxgps.core.fusion import ImuSample, NavFilter
-from auxgps.sim.flight import SimConfig, fly, imu_bias, lawnmower_waypoints, sense, sense_imu
+from auxgps.core.estimator import Estimator, EstimatorOptions, FrameResult
+from auxgps.core.events import Frame
+from auxgps.core.geometry import R_body_cam_from_mount
+from auxgps.sim.flight import SimConfig, fly, imu_bias, lawnmower_waypoints
+from auxgps.sim.sensors import Sensors
 from auxgps.sim.render import Renderer
 from auxgps.sim.world import World
 
@@ -76,51 +74,110 @@ def _reason_key(reason: str) -> str:
     return reason.split(":")[0] if ":" in reason else " ".join(w for w in reason.split() if not w[0].isdigit())
 
 
+#: The UTC the simulated flights' clocks start at (only GPS_INPUT's week time reads it), s.
+T_UNIX_0_S = 1_800_000_000.0
+
+
 class _Setup:
-    """Everything one run builds once: camera, renderer, detector, map and the estimator's parts."""
+    """Everything one run builds once: seeded generators, camera geometry and renderer. The estimator is built by
+    :class:`Estimator` alone."""
 
     def __init__(self, world: World, pipeline: PipelineConfig, sim: SimConfig, seed: int) -> None:
         seq = np.random.SeedSequence(seed)
         self.rng_fly_map, self.rng_fly_pos, self.rng_tel, self.rng_img, self.rng_imu = (np.random.default_rng(s) for s in seq.spawn(5))
         self.world, self.pipeline, self.sim = world, pipeline, sim
+        self.options = EstimatorOptions()
         self.camera = camera_from_config(pipeline.camera)
         m = pipeline.mount
         self.R_body_cam = R_body_cam_from_mount(*np.deg2rad([m.roll_deg, m.pitch_deg, m.yaw_deg]))
         self.renderer = Renderer(world, self.camera)
         self.effects = sim.image_effects()
-        self.detector = FeatureDetector(pipeline.detector)
-        self.landmarks = LandmarkMap()
-        self.mapper = Mapper(pipeline, self.camera, self.R_body_cam, self.landmarks)
-        self.localiser = Localiser(pipeline, self.camera, self.R_body_cam, self.landmarks)
 
     def render(self, traj, i):
         pose = CameraPose(traj.p_ned_m[i].copy(), traj.R_ned_body(i) @ self.R_body_cam)
         return self.renderer.render(pose, self.effects, self.rng_img)
 
+    def sensors(self, traj, bias, denied_from_s: float = np.inf) -> Sensors:
+        return Sensors(traj, self.world.frame, self.sim.noise, rng_tel=self.rng_tel, rng_imu=self.rng_imu, bias_body_m_s2=bias,
+                       gps1_lag_s=self.options.gps1_lag_s, gps_denied_from_s=denied_from_s)
 
-def _map_flight(su: _Setup, alt_m: float, fps: float, progress) -> tuple[np.ndarray, np.ndarray, list]:
-    """Phase 1: the mapping survey with GPS. Returns landmark errors (used, seen > 10) and frame times."""
+
+@dataclass
+class _Seen:
+    """One processed frame, as the evaluator sees it: the estimator's result, the rendering (truth), the step, and
+    the wall time it took (begin, process and finish), ms."""
+
+    i: int
+    result: FrameResult
+    rendered: object
+    blinded: bool
+    ms: float
+
+
+def _fly(est: Estimator, su: _Setup, traj, sensors: Sensors, fps: float, *, latency_s: float, on_frame, on_output=None,
+         blackout: tuple[float, float] | None = None, progress=None) -> None:
+    """Feed one trajectory to ``est`` as a companion would: telemetry as it comes, each frame begun at its capture
+    and finished ``latency_s`` later (its processing time on a vehicle), GPS_INPUT asked for at the output rate.
+    ``on_frame(_Seen)`` and ``on_output(i, Output)`` are the evaluator's: only they see the truth."""
+    dt = traj.t_s[1] - traj.t_s[0]
+    frame_every = max(1, int(round(1.0 / (fps * dt))))
+    out_every = max(1, int(round(1.0 / (su.pipeline.fusion.output_rate_hz * dt))))
+    pending: list[tuple[float, object, int, object, bool, float]] = []
+
+    def finish(item):
+        _, work, i, rendered, blinded, ms = item
+        t0 = time.perf_counter()
+        res = est.finish_frame(work)
+        on_frame(_Seen(i, res, rendered, blinded, ms + (time.perf_counter() - t0) * 1e3))
+
+    for i in range(len(traj.t_s)):
+        t = float(traj.t_s[i])
+        for event in sensors.events_at(i):
+            est.feed(event)
+        while pending and pending[0][0] <= t + 1e-9:
+            finish(pending.pop(0))
+        if i % frame_every == 0:
+            rendered = su.render(traj, i)
+            image = rendered.image_bgr
+            blinded = blackout is not None and blackout[0] <= t < blackout[1]
+            if blinded:
+                image = np.zeros_like(image)  # the camera is blinded
+            t0 = time.perf_counter()
+            job = est.begin_frame(Frame(t, image))
+            if isinstance(job, FrameResult):
+                on_frame(_Seen(i, job, rendered, blinded, (time.perf_counter() - t0) * 1e3))
+            else:
+                work = est.process_frame(job)
+                pending.append((t + latency_s, work, i, rendered, blinded, (time.perf_counter() - t0) * 1e3))
+            if progress is not None:
+                progress()
+        if on_output is not None and i % out_every == 0:
+            on_output(i, est.output(t, T_UNIX_0_S + t))
+
+
+def _map_flight(su: _Setup, alt_m: float, fps: float, progress) -> tuple[Estimator, np.ndarray, np.ndarray, list]:
+    """Phase 1: the mapping survey with GPS. Returns the estimator that flew it (its map), landmark errors (used,
+    seen > 10) and frame times."""
     sim, pipeline = su.sim, su.pipeline
     traj = fly(lawnmower_waypoints(sim.mapping, alt_m), sim.mapping.speed_m_s, sim.vehicle, su.rng_fly_map, sim.dt_s)
+    est = Estimator(pipeline, su.options, frame=su.world.frame)
     truths_of: dict[int, list[np.ndarray]] = {}
     mapping_ms = []
-    for t in np.arange(0.0, traj.duration_s, 1.0 / fps):
-        i = traj.index_at(t)
-        frame = su.render(traj, i)
-        tel = sense(traj, i, sim.noise, su.rng_tel)
-        nav = NavSample(tel.t_s, tel.p_gps_ned_m, tel.alt_m, tel.R_ned_body)
-        t0 = time.perf_counter()
-        feats = su.detector.detect(frame.image_bgr, tel.R_ned_body @ su.R_body_cam)
-        result = su.mapper.process(feats, nav)
-        mapping_ms.append((time.perf_counter() - t0) * 1e3)
-        fed = np.flatnonzero(result.landmark_ids >= 0)
-        for lid, p in zip(result.landmark_ids[fed], frame.true_points_at(feats.uv_px[fed])):
+
+    def on_frame(seen: _Seen) -> None:
+        mapped = seen.result.mapped
+        if mapped is None:
+            return
+        mapping_ms.append(seen.ms)
+        fed = np.flatnonzero(mapped.landmark_ids >= 0)
+        for lid, p in zip(mapped.landmark_ids[fed], seen.rendered.true_points_at(seen.result.features.uv_px[fed])):
             truths_of.setdefault(int(lid), []).append(p)
-        if progress is not None:
-            progress()
+
+    _fly(est, su, traj, su.sensors(traj, imu_bias(sim.noise, su.rng_imu)), fps, latency_s=sim.denial.fix_latency_s,
+         on_frame=on_frame, progress=progress)
     # A landmark's truth is the median of the true points behind the features that fed it. Scored: the
     # landmarks positioning uses (seen more than 10 times, views consistent), and all seen more than 10 times.
-    lm = su.landmarks
+    lm = est.landmarks
     m = pipeline.mapping
     seen = np.flatnonzero(lm.n_seen[: len(lm)] >= m.min_seen)
     used = seen[lm.usable(seen, m.min_seen, m.max_mean_chi2, m.min_found_ratio)]
@@ -128,7 +185,7 @@ def _map_flight(su: _Setup, alt_m: float, fps: float, progress) -> tuple[np.ndar
     def errors(ids):
         return np.array([lm.p_ned_m[j, :2] - np.median(truths_of[int(j)], axis=0)[:2] for j in ids]).reshape(-1, 2)
 
-    return errors(used), errors(seen), mapping_ms
+    return est, errors(used), errors(seen), mapping_ms
 
 
 def run_once(
@@ -139,80 +196,62 @@ def run_once(
     ``fps`` is the positioning flight's frame rate; the survey is mapped at ``mapping_fps`` (default ``fps``):
     a camera at 30 frames a second need not feed the mapper every frame, whose landmarks want a dozen views.
 
-    The positioning flight has GPS for its first ``sim.denial.gps_until_s`` seconds, then none. The filter is
-    driven by the IMU at its rate, the barometer and (while it lasts) GPS; every frame is located against the
-    map with the filter's prediction as the search prior, and its fix reaches the filter ``fix_latency_s`` after
-    the frame was captured. Only this function sees the truth, to score.
+    Both flights go through :class:`Estimator`, as ``auxgps run`` does: the survey from an empty map about the
+    world's origin, the positioning flight from the survey's map (as ``--map``). The positioning flight has GPS1
+    for its first ``sim.denial.gps_until_s`` seconds (it maps on), then GPS1 reports no fix. Each frame is begun
+    at its capture and finished ``fix_latency_s`` later; GPS_INPUT is asked for at the output rate and scored at
+    the time it describes. Only this function sees the truth, to score.
     """
     su = _Setup(world, pipeline, sim, seed)
-    lm_err, lm_err_seen, mapping_ms = _map_flight(su, alt_m, mapping_fps or fps, progress)
+    map_est, lm_err, lm_err_seen, mapping_ms = _map_flight(su, alt_m, mapping_fps or fps, progress)
 
     traj = fly(lawnmower_waypoints(sim.positioning, alt_m), sim.positioning.speed_m_s, sim.vehicle, su.rng_fly_pos, sim.dt_s)
-    noise, den = sim.noise, sim.denial
+    den = sim.denial
+    denied_from = float(den.gps_until_s)
+    est = Estimator(pipeline, su.options, landmarks=map_est.landmarks, frame=world.frame)
     dt = traj.t_s[1] - traj.t_s[0]
-    every = lambda rate_hz: max(1, int(round(1.0 / (rate_hz * dt))))  # noqa: E731
-    imu_every, baro_every, gps_every = every(noise.imu_rate_hz), every(noise.baro_rate_hz), every(noise.gps_rate_hz)
-    frame_every, out_every = every(fps), every(pipeline.fusion.output_rate_hz)
-    bias = imu_bias(noise, su.rng_imu)
-    nav = NavFilter(pipeline.fusion, 0.0, traj.p_ned_m[0] + su.rng_tel.standard_normal(3) * noise.gps_horizontal_m, np.zeros(3), noise.gps_horizontal_m * 2, 0.1)
+    blackout = (den.blackout_start_s, den.blackout_start_s + den.blackout_duration_s) if den.blackout_start_s is not None else None
 
-    pending: list[tuple[float, Fix, int]] = []  # (delivery time, fix, its index in fix_err)
     fix_applied, fix_err, fix_sigma, fix_gated, pos_ms, n_feat = [], [], [], [], [], []
     fused_t, fused_err, fused_cov, fused_vel_err = [], [], [], []
     reasons: dict[str, int] = {}
-    n_elig = n_elig_fixed = n_frames = 0
-    blackout = (den.blackout_start_s, (den.blackout_start_s or 0.0) + den.blackout_duration_s)
-    for i in range(len(traj.t_s)):
-        t = float(traj.t_s[i])
-        denied = t >= den.gps_until_s
-        if i % imu_every == 0:
-            t_imu, f_body, euler = sense_imu(traj, i, noise, bias, su.rng_imu)
-            nav.propagate(ImuSample(t_imu, f_body, R_ned_body_from_euler(*euler)))
-        if i % baro_every == 0:
-            nav.update_altitude(t, -traj.p_ned_m[i, 2] + noise.altitude_m * su.rng_tel.standard_normal(), pipeline.noise.altitude_m)
-        if not denied and i % gps_every == 0:
-            gps = traj.p_ned_m[i, :2] + su.rng_tel.standard_normal(2) * noise.gps_horizontal_m
-            nav.update_position(t, gps, np.eye(2) * pipeline.noise.gps_horizontal_m**2)
-        while pending and pending[0][0] <= t:
-            _, fix, k = pending.pop(0)
-            decision = nav.update_position(fix.t_s, fix.p_ned_m[:2], fix.cov_ned_m2[:2, :2], visual=True)
-            fix_gated[k] = not decision.accepted
-            fix_applied[k] = t
-        if i % frame_every == 0 and denied:
-            tel = sense(traj, i, noise, su.rng_tel, gps_ok=False)
-            frame = su.render(traj, i)
-            image = frame.image_bgr
-            if blackout[0] is not None and blackout[0] <= t < blackout[1]:
-                image = np.zeros_like(image)  # the camera is blinded
-            t0 = time.perf_counter()
-            prior = nav.prior(t)
-            cand = su.localiser.candidates(tel.alt_m, prior)
-            feats = su.detector.detect(image, tel.R_ned_body @ su.R_body_cam, su.localiser.detection_scale(tel.alt_m, prior, cand))
-            res = su.localiser.locate(feats, t, tel.R_ned_body, tel.alt_m, prior, cand)
-            pos_ms.append((time.perf_counter() - t0) * 1e3)
-            n_feat.append(len(feats))
-            eligible = _cube_fully_in_view(world, su.camera, frame.pose) and image is frame.image_bgr
-            n_frames += 1
-            n_elig += eligible
-            if isinstance(res, Fix):
-                n_elig_fixed += eligible
-                err = res.p_ned_m[:2] - traj.p_ned_m[i, :2]
-                fix_applied.append(np.nan)
-                fix_err.append(err)
-                fix_sigma.append(res.sigma_h_m)
-                fix_gated.append(False)
-                pending.append((t + den.fix_latency_s, res, len(fix_err) - 1))
-            else:
-                key = _reason_key(res.reason)
-                reasons[key] = reasons.get(key, 0) + 1
-            if progress is not None:
-                progress()
-        if i % out_every == 0 and denied:
-            est = nav.estimate()
-            fused_t.append(t)
-            fused_err.append(est.p_ned_m[:2] - traj.p_ned_m[i, :2])
-            fused_cov.append(est.cov_p_m2[:2, :2])
-            fused_vel_err.append(est.v_ned_m_s[:2] - traj.v_ned_m_s[i, :2])
+    counts = {"eligible": 0, "eligible_fixed": 0, "frames": 0}
+
+    def on_frame(seen: _Seen) -> None:
+        res = seen.result
+        t_capture = float(traj.t_s[seen.i])
+        if res.kind == "skipped" or res.mapping or t_capture < denied_from:
+            return
+        pos_ms.append(seen.ms)
+        n_feat.append(len(res.features))
+        eligible = _cube_fully_in_view(world, su.camera, seen.rendered.pose) and not seen.blinded
+        counts["frames"] += 1
+        counts["eligible"] += eligible
+        if res.kind == "visual":
+            counts["eligible_fixed"] += eligible
+            fix_err.append(res.located.p_ned_m[:2] - traj.p_ned_m[seen.i, :2])
+            fix_sigma.append(res.located.sigma_h_m)
+            fix_gated.append(not res.decision.accepted)
+            fix_applied.append(t_capture + den.fix_latency_s)
+        else:
+            key = _reason_key(res.reason)
+            reasons[key] = reasons.get(key, 0) + 1
+
+    def on_output(i: int, out) -> None:
+        if out.estimate is None or out.t_described_s < denied_from:
+            return
+        k = min(max(int(round(out.t_described_s / dt)), 0), len(traj.t_s) - 1)
+        fused_t.append(out.t_described_s)
+        fused_err.append(out.estimate.p_ned_m[:2] - traj.p_ned_m[k, :2])
+        fused_cov.append(out.estimate.cov_p_m2[:2, :2])
+        fused_vel_err.append(out.estimate.v_ned_m_s[:2] - traj.v_ned_m_s[k, :2])
+
+    sensors = su.sensors(traj, imu_bias(sim.noise, su.rng_imu), denied_from_s=denied_from)
+    _fly(est, su, traj, sensors, fps, latency_s=den.fix_latency_s, on_frame=on_frame, on_output=on_output, blackout=blackout,
+         progress=progress)
+    # A fix captured in the flight's last moments never reaches the filter.
+    t_end = float(traj.t_s[-1])
+    fix_applied = [t if t <= t_end + 1e-9 else np.nan for t in fix_applied]
 
     return RunRecord(
         seed=seed,
@@ -221,19 +260,19 @@ def run_once(
         fix_err_ne_m=np.array(fix_err).reshape(-1, 2),
         fix_sigma_h_m=np.array(fix_sigma),
         fix_gated=np.array(fix_gated, bool),
-        n_eligible_frames=n_elig,
-        n_eligible_fixed=n_elig_fixed,
-        n_positioning_frames=n_frames,
+        n_eligible_frames=counts["eligible"],
+        n_eligible_fixed=counts["eligible_fixed"],
+        n_positioning_frames=counts["frames"],
         fused_t_s=np.array(fused_t),
         fused_err_ne_m=np.array(fused_err).reshape(-1, 2),
         fused_cov_ne_m2=np.array(fused_cov).reshape(-1, 2, 2),
         fused_vel_err_ne_m_s=np.array(fused_vel_err).reshape(-1, 2),
         fix_applied_t_s=np.array(fix_applied, float),
-        denied_from_s=float(den.gps_until_s),
-        denied_s=float(traj.duration_s - den.gps_until_s),
-        blackout_s=(blackout[0], blackout[1]) if blackout[0] is not None else None,
-        n_reinit=nav.n_reinit,
-        n_bad_imu=nav.n_bad_imu,
+        denied_from_s=denied_from,
+        denied_s=float(traj.duration_s - denied_from),
+        blackout_s=blackout,
+        n_reinit=est.filter.n_reinit if est.filter is not None else 0,
+        n_bad_imu=est.filter.n_bad_imu if est.filter is not None else 0,
         mapping_ms=np.array(mapping_ms),
         positioning_ms=np.array(pos_ms),
         features_per_frame=np.array(n_feat),

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -16,20 +15,11 @@ import cv2
 import numpy as np
 
 from auxgps.core.camera import CameraPose, PinholeCamera
+from auxgps.core.events import Frame
 from auxgps.core.geometry import R_ned_body_from_euler
 from auxgps.errors import ConfigError
-from auxgps.sim.render import Renderer
-from auxgps.sim.world import load_world
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Frame:
-    """An image and its capture time on the process's monotonic clock (s)."""
-
-    t_s: float
-    image_bgr: np.ndarray
 
 
 class SimCamera:
@@ -40,6 +30,10 @@ class SimCamera:
     """
 
     def __init__(self, world_path: str, camera: PinholeCamera, R_body_cam: np.ndarray, truth: Callable) -> None:
+        # The simulator is loaded only when this source is asked for: the flying code imports none of it.
+        from auxgps.sim.render import Renderer
+        from auxgps.sim.world import load_world
+
         self.world = load_world(world_path)
         self.renderer = Renderer(self.world, camera)
         self.R_body_cam = R_body_cam

@@ -20,6 +20,7 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")  # SIM_STATE's lat_int/lon_int are MAVLink 2 extension fields
 from pymavlink import mavutil  # noqa: E402
 
+from auxgps.core.events import Attitude, Gps1, Imu, Position  # noqa: E402  (re-exported: the link's records)
 from auxgps.core.gps_output import GpsOutput  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -36,42 +37,6 @@ STREAMS_HZ = {
     mav.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
 }
 SIM_STREAMS_HZ = {mav.MAVLINK_MSG_ID_SIMSTATE: 20.0, mav.MAVLINK_MSG_ID_SIM_STATE: 20.0}
-
-
-@dataclass(frozen=True)
-class Attitude:
-    t_s: float
-    euler_rad: np.ndarray  # roll, pitch, yaw
-
-
-@dataclass(frozen=True)
-class Imu:
-    t_s: float
-    f_body_m_s2: np.ndarray  # specific force, FRD body
-
-
-@dataclass(frozen=True)
-class Gps1:
-    """GPS1 as the autopilot reports it (GPS_RAW_INT); ``t_s`` is when the autopilot got the fix, local clock."""
-
-    t_s: float
-    fix_type: int
-    satellites: int
-    lat_deg: float
-    lon_deg: float
-    alt_amsl_m: float
-    h_acc_m: float
-
-
-@dataclass(frozen=True)
-class Position:
-    """The autopilot's own estimate (GLOBAL_POSITION_INT)."""
-
-    t_s: float
-    lat_deg: float
-    lon_deg: float
-    alt_amsl_m: float
-    rel_alt_m: float
 
 
 @dataclass(frozen=True)
@@ -144,22 +109,41 @@ def decode(msg, clock: BootClock, arrival_s: float):
     return None
 
 
+class Decoder:
+    """Turns the autopilot's messages into records, with the boot clock that stamps them on the local clock.
+
+    Its state is the clock alone: a replay that hands it the same messages with the same arrival times gets the
+    same records, to the bit.
+    """
+
+    def __init__(self) -> None:
+        self.clock = BootClock()
+
+    def __call__(self, msg, arrival_s: float):
+        """A record, or None for a message auxgps does not use or cannot decode (logged)."""
+        try:
+            return decode(msg, self.clock, arrival_s)
+        except (AttributeError, TypeError, ValueError) as err:
+            log.warning("could not decode %s: %s", msg.get_type(), err)
+            return None
+
+
 class MavLink:
     """A MAVLink connection (pymavlink URL: ``tcp:HOST:PORT``, ``udpin:HOST:PORT``, ``/dev/ttyX,57600``).
 
-    A reader thread decodes messages from the autopilot (the first system whose HEARTBEAT says ArduPilot)
-    and hands records to ``on_record``; when the link is silent for ``timeout_s`` or fails, it reconnects.
+    A reader thread hands every message from the autopilot (the first system whose HEARTBEAT says ArduPilot) to
+    ``on_message(msg, arrival_s)``, arrival on the monotonic clock rounded to the microsecond (what a tlog keeps);
+    when the link is silent for ``timeout_s`` or fails, it reconnects.
     """
 
-    def __init__(self, url: str, on_record: Callable[[object], None], *, sim: bool = False, timeout_s: float = 3.0,
+    def __init__(self, url: str, on_message: Callable[[object, float], None], *, sim: bool = False, timeout_s: float = 3.0,
                  source_system: int = 1, source_component: int = mav.MAV_COMP_ID_ONBOARD_COMPUTER) -> None:
         self.url = url
-        self.on_record = on_record
+        self.on_message = on_message
         self.sim = sim
         self.timeout_s = timeout_s
         self.source_system, self.source_component = source_system, source_component
         self.target_system: int | None = None
-        self.clock = BootClock()
         self.connected = threading.Event()
         self.reconnects = 0
         self._conn = None
@@ -220,7 +204,7 @@ class MavLink:
                 except (OSError, ConnectionError) as err:
                     log.warning("link %s failed: %s; reconnecting", self.url, err)
                     break
-                now = time.monotonic()
+                now = round(time.monotonic() * 1e6) / 1e6
                 if msg is None:
                     if now - last_rx > self.timeout_s:
                         log.warning("link %s silent for %.1f s; reconnecting", self.url, now - last_rx)
@@ -245,16 +229,9 @@ class MavLink:
             self.connected.set()
             self.request_streams()
             log.info("autopilot is system %d on %s", src, self.url)
-            return
         if src != self.target_system:
             return  # another system on the link
-        try:
-            record = decode(msg, self.clock, now)
-        except (AttributeError, TypeError, ValueError) as err:
-            log.warning("could not decode %s: %s", kind, err)
-            return
-        if record is not None:
-            self.on_record(record)
+        self.on_message(msg, now)
 
     # -- writing --------------------------------------------------------------------------------------------
 

@@ -132,12 +132,10 @@ def load_map(path: Path | str) -> tuple[LandmarkMap, LocalFrame]:
     if meta["descriptor"] != "orb":
         raise MapError(f"{path}: a map of {meta['descriptor']} features (built from photos, for auxgps locate); "
                        "the flight pipeline needs a map it built itself (orb)")
-    n = int(meta["count"])
-    lm = LandmarkMap(capacity=max(n, 16))
-    for name, a in columns.items():
-        getattr(lm, name)[:n] = a
-    lm._n = n
-    lm.sync_index()  # built here, so that the first frame after loading is not the one that pays for it
+    try:
+        lm = LandmarkMap.from_columns(columns)
+    except ValueError as err:
+        raise MapError(f"{path}: {err}") from None
     return lm, frame
 
 

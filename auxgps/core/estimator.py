@@ -1,0 +1,286 @@
+"""The estimator: everything auxgps decides, from timestamped events, with no threads, sockets, files or clock.
+
+This is the one place that builds the pipeline (detector, mapper, localiser, filter, supervisor) and the one path
+every command runs: ``auxgps run`` feeds it the link's messages and the camera's frames on the process's clock;
+``eval``, ``bench`` and ``demo`` feed it a simulator's; ``replay`` feeds it a recording's. The same events in the
+same order give bit-identical results.
+
+Inputs (:mod:`auxgps.core.events`):
+
+- :meth:`Estimator.feed` takes telemetry: IMU and attitude drive the filter, the autopilot's height above home
+  corrects its height, GPS1 corrects its position and, while the supervisor trusts it, geotags landmarks.
+- A camera frame goes through three calls, so that a companion can run the slow middle one without holding the
+  lock that its other threads need: :meth:`begin_frame` reads the filter (the prior at the frame's capture time,
+  the attitude, whether GPS1 is trusted), :meth:`process_frame` detects, maps or locates (it touches only the map
+  and the frame), :meth:`finish_frame` fuses the fix. :meth:`on_frame` is the three in a row.
+- :meth:`output` is what GPS_INPUT says at a given time.
+
+Heights: ``alt_above_origin_m`` is above the local frame's origin (the map's, or the ground below GPS1's first
+fix); the autopilot reports heights above home, and the two differ by home's height above the origin.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from auxgps.config import PipelineConfig
+from auxgps.core.camera import camera_from_config
+from auxgps.core.events import Attitude, Frame, Gps1, Imu, Position
+from auxgps.core.features import FeatureDetector, Features
+from auxgps.core.fusion import FusedEstimate, GateDecision, ImuSample, NavFilter
+from auxgps.core.geometry import LocalFrame, R_body_cam_from_mount, R_ned_body_from_euler
+from auxgps.core.gps_output import GpsOutput, gps_output
+from auxgps.core.landmarks import LandmarkMap
+from auxgps.core.localise import Fix, Localiser, NoFix, PositionPrior
+from auxgps.core.mapping import Mapper, MappingResult
+from auxgps.core.nav import NavSample
+from auxgps.core.stopwatch import null_stopwatch
+from auxgps.core.supervisor import Decision, Gps1Sample, Mode, Supervisor, SupervisorConfig
+
+
+@dataclass(frozen=True)
+class EstimatorOptions:
+    """Timing facts of the vehicle the estimator runs on.
+
+    ``gps_delay_s``: each output describes the vehicle this long before it is asked for (the autopilot's
+    ``GPS2_DELAY_MS``); ``gps1_lag_s``: how long before the autopilot gets a GPS1 reading its receiver measured it.
+    """
+
+    gps_delay_s: float = 0.1
+    gps1_lag_s: float = 0.1
+    supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
+
+
+@dataclass(frozen=True)
+class FrameJob:
+    """A frame with what the estimator knew at its capture time (from :meth:`Estimator.begin_frame`).
+
+    ``mapping``: GPS1 was trusted, so the frame feeds the map and its fix is only a self-check;
+    ``p_gps_ned_m``: where the filter, fusing GPS1, puts the camera at the capture time (mapping frames only).
+    """
+
+    frame: Frame
+    R_ned_body: np.ndarray
+    alt_above_origin_m: float
+    prior: PositionPrior
+    mapping: bool
+    p_gps_ned_m: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class FrameWork:
+    """What :meth:`Estimator.process_frame` found: the features, the map update and the fix."""
+
+    job: FrameJob
+    features: Features
+    mapped: MappingResult | None
+    located: Fix | NoFix
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """What auxgps decided about one frame.
+
+    ``kind``: "skipped" (no filter, attitude or height yet), "none" (no fix), "self-check" (a fix while mapping,
+    compared with the filter: ``self_check_m``), or "visual" (a fix given to the filter: ``decision``).
+    ``mapping``: the frame fed the map (GPS1 was trusted at its capture); ``features``: what was detected in it.
+    """
+
+    t_s: float
+    kind: str
+    reason: str
+    mapping: bool = False
+    located: Fix | NoFix | None = None
+    decision: GateDecision | None = None
+    self_check_m: float | None = None
+    mapped: MappingResult | None = None
+    features: Features | None = None
+
+
+@dataclass(frozen=True)
+class Output:
+    """What auxgps tells the autopilot at ``t_s``: the GPS_INPUT content (None before the local frame is known),
+    the supervisor's decision, and the estimate it came from, which describes ``t_described_s``."""
+
+    t_s: float
+    t_described_s: float
+    gps: GpsOutput | None
+    decision: Decision
+    estimate: FusedEstimate | None
+
+
+class Estimator:
+    """auxgps's decisions from events. ``landmarks`` and ``frame``: a map to start from (with its local frame),
+    or a local frame alone (an empty map about a known origin); without a frame, GPS1's first 3D fix anchors one."""
+
+    def __init__(self, cfg: PipelineConfig, options: EstimatorOptions | None = None, *, landmarks: LandmarkMap | None = None,
+                 frame: LocalFrame | None = None, stopwatch=None) -> None:
+        if landmarks is not None and frame is None:
+            raise ValueError("a map needs its local frame")
+        self.cfg = cfg
+        self.options = options or EstimatorOptions()
+        self.stopwatch = stopwatch if stopwatch is not None else null_stopwatch
+        self.camera = camera_from_config(cfg.camera)
+        m = cfg.mount
+        self.R_body_cam = R_body_cam_from_mount(*np.deg2rad([m.roll_deg, m.pitch_deg, m.yaw_deg]))
+        self.frame = frame
+        self.landmarks = landmarks if landmarks is not None else LandmarkMap()
+        self.detector = FeatureDetector(cfg.detector)
+        self.mapper = Mapper(cfg, self.camera, self.R_body_cam, self.landmarks, self.stopwatch)
+        self.localiser = Localiser(cfg, self.camera, self.R_body_cam, self.landmarks, self.stopwatch)
+        self.supervisor = Supervisor(self.options.supervisor)
+        self.filter: NavFilter | None = None
+        self._attitudes: deque[Attitude] = deque(maxlen=200)
+        # Home's height above the origin: 0 for an origin found below GPS1's first fix, and taken as 0 for a loaded
+        # map's (the vehicle arms where it mapped from).
+        self._home_above_origin_m: float | None = 0.0 if frame is not None else None
+        self._alt_above_home_m: float | None = None
+        self._gps1_sats: int | None = None
+        self.last_correction_t_s: float | None = None
+        self._last_disagreement: str | None = None
+
+    # -- telemetry -----------------------------------------------------------------------------------------
+
+    def feed(self, event) -> str | None:
+        """Take one telemetry record; return a line for the events log when it says something new (a GPS1
+        disagreement), else None. Records of other kinds are ignored."""
+        if isinstance(event, Imu):
+            self._on_imu(event)
+        elif isinstance(event, Attitude):
+            self._attitudes.append(event)
+        elif isinstance(event, Position):
+            self._on_position(event)
+        elif isinstance(event, Gps1):
+            return self._on_gps1(event)
+        return None
+
+    @property
+    def alt_above_origin_m(self) -> float | None:
+        """The latest height above the local origin, m (None before a height and an origin are known)."""
+        if self._alt_above_home_m is None or self._home_above_origin_m is None:
+            return None
+        return self._alt_above_home_m + self._home_above_origin_m
+
+    def _on_imu(self, rec: Imu) -> None:
+        if self.filter is not None and self._attitudes:
+            R = R_ned_body_from_euler(*self._attitude_at(rec.t_s))
+            self.filter.propagate(ImuSample(rec.t_s, rec.f_body_m_s2, R))
+
+    def _on_position(self, rec: Position) -> None:
+        if not np.isfinite(rec.alt_above_home_m):
+            return
+        self._alt_above_home_m = rec.alt_above_home_m
+        alt = self.alt_above_origin_m
+        if self.filter is not None and alt is not None:
+            self.filter.update_altitude(rec.t_s, alt, self.cfg.noise.altitude_m)
+
+    def _on_gps1(self, rec: Gps1) -> str | None:
+        if self.frame is None:
+            # No map: anchor the local frame at the first 3D fix, on the ground below it (the autopilot's height
+            # above home says how far up it is). Not at the autopilot's own position: before its EKF has an
+            # origin, GLOBAL_POSITION_INT's altitude reads 0.
+            if rec.fix_type < 3 or self._alt_above_home_m is None or not np.isfinite([rec.lat_deg, rec.lon_deg, rec.alt_amsl_m]).all():
+                return None
+            self.frame = LocalFrame(rec.lat_deg, rec.lon_deg, rec.alt_amsl_m - self._alt_above_home_m)
+            self._home_above_origin_m = 0.0
+        p = self.frame.to_ned(lat_deg=rec.lat_deg, lon_deg=rec.lon_deg, alt_amsl_m=rec.alt_amsl_m)
+        t_meas = rec.t_s - self.options.gps1_lag_s  # when the receiver measured it
+        est = self.filter.estimate_at(t_meas) if self.filter is not None else None
+        sup = self.supervisor
+        sup.gps1(Gps1Sample(t_meas, rec.fix_type, rec.satellites, p, rec.h_acc_m),
+                 est.p_ned_m if est is not None else None, est.cov_p_m2[:2, :2] if est is not None else None)
+        note = sup.disagreement if sup.disagreement and sup.disagreement != self._last_disagreement else None
+        self._last_disagreement = sup.disagreement
+        if not sup.gps1_trusted:
+            self._gps1_sats = None
+            return note
+        self._gps1_sats = rec.satellites
+        sigma = max(rec.h_acc_m, self.cfg.noise.gps_horizontal_m)
+        if self.filter is None:
+            self.filter = NavFilter(self.cfg.fusion, t_meas, p, np.zeros(3), sigma, 1.0)
+        else:
+            self.filter.update_position(t_meas, p[:2], np.eye(2) * sigma**2)
+        self.last_correction_t_s = t_meas
+        return note
+
+    def _attitude_at(self, t_s: float) -> np.ndarray:
+        """The attitude sample nearest to ``t_s``."""
+        best = min(self._attitudes, key=lambda a: abs(a.t_s - t_s))
+        return best.euler_rad
+
+    # -- frames --------------------------------------------------------------------------------------------
+
+    def begin_frame(self, frame: Frame) -> FrameJob | FrameResult:
+        """What the estimator knows at the frame's capture time; a "skipped" result when it cannot use the frame."""
+        alt = self.alt_above_origin_m
+        if self.filter is None or not self._attitudes or alt is None:
+            missing = "filter (no GPS1 fix yet)" if self.filter is None else "attitude" if not self._attitudes else "height"
+            return FrameResult(frame.t_s, "skipped", f"no {missing}")
+        R = R_ned_body_from_euler(*self._attitude_at(frame.t_s))
+        mapping = self.supervisor.gps1_trusted
+        # Where GPS1 puts the camera at the frame's time: the filter, which fuses GPS1 at its measurement time with
+        # the IMU, interpolates between GPS1's readings and carries its lag.
+        p_gps = self.filter.estimate_at(frame.t_s).p_ned_m if mapping else None
+        return FrameJob(frame, R, alt, self.filter.prior(frame.t_s), mapping, p_gps)
+
+    def process_frame(self, job: FrameJob) -> FrameWork:
+        """Detect, then map (while GPS1 is trusted) and locate. Reads and changes only the map and the frame."""
+        sw = self.stopwatch
+        # Mapping frames keep full resolution; positioning frames from closer than the map are shrunk to its
+        # scale. A positioning frame looks its candidate landmarks up once; a mapping frame's self-check after the
+        # mapper has changed the map looks them up again.
+        with sw("matching"):
+            cand = None if job.mapping else self.localiser.candidates(job.alt_above_origin_m, job.prior)
+        scale = 1.0 if job.mapping else self.localiser.detection_scale(job.alt_above_origin_m, job.prior, cand)
+        with sw("detection"):
+            feats = self.detector.detect(job.frame.image_bgr, job.R_ned_body @ self.R_body_cam, scale)
+        mapped = None
+        if job.mapping:
+            with sw("mapping"):
+                mapped = self.mapper.process(feats, NavSample(job.frame.t_s, job.p_gps_ned_m, job.alt_above_origin_m, job.R_ned_body))
+        with sw("locating"):
+            located = self.localiser.locate(feats, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior, cand)
+        return FrameWork(job, feats, mapped, located)
+
+    def finish_frame(self, work: FrameWork) -> FrameResult:
+        """Fuse the frame's fix (positioning) or compare it with the filter (mapping)."""
+        job, res = work.job, work.located
+        t = job.frame.t_s
+        common = dict(mapping=job.mapping, located=res, mapped=work.mapped, features=work.features)
+        if not isinstance(res, Fix):
+            return FrameResult(t, "none", res.reason, **common)
+        if job.mapping:
+            est = self.filter.estimate_at(res.t_s)
+            d = float(np.linalg.norm(res.p_ned_m[:2] - est.p_ned_m[:2]))
+            return FrameResult(t, "self-check", f"{d:.3f} m", self_check_m=d, **common)
+        with self.stopwatch("filtering"):
+            decision = self.filter.update_position(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2], visual=True)
+        if decision.accepted:
+            self.last_correction_t_s = max(res.t_s, self.last_correction_t_s or -np.inf)
+        return FrameResult(t, "visual", decision.reason, decision=decision, **common)
+
+    def on_frame(self, frame: Frame) -> FrameResult:
+        """A frame processed at once: :meth:`begin_frame`, :meth:`process_frame`, :meth:`finish_frame`."""
+        job = self.begin_frame(frame)
+        if isinstance(job, FrameResult):
+            return job
+        return self.finish_frame(self.process_frame(job))
+
+    # -- output --------------------------------------------------------------------------------------------
+
+    def output(self, t_s: float, t_unix_s: float) -> Output:
+        """What GPS_INPUT says when sent at ``t_s`` (the clock of the events) and ``t_unix_s`` (UTC, for the GPS
+        week time): the vehicle ``gps_delay_s`` earlier, with a fix only while auxgps believes it."""
+        t_described = t_s - self.options.gps_delay_s
+        est = self.filter.estimate_at(t_described) if self.filter is not None else None
+        decision = self.supervisor.decide(t_s, sigma_h_m=est.sigma_h_m if est is not None else None,
+                                          last_correction_t_s=self.last_correction_t_s)
+        if self.frame is None:
+            return Output(t_s, t_described, None, decision, est)
+        sats = self._gps1_sats if decision.gps1_trusted else None
+        gps = gps_output(est, self.frame, t_unix_s - self.options.gps_delay_s, believed=decision.mode != Mode.NO_FIX,
+                         gps1_sats=sats, max_sigma_h_m=self.supervisor.cfg.max_sigma_h_m)
+        return Output(t_s, t_described, gps, decision, est)

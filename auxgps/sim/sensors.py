@@ -1,0 +1,57 @@
+"""A simulated autopilot's telemetry along a flown trajectory, as the estimator's events (truth plus noise).
+
+At each simulation step the autopilot reports what it would at its rates: an attitude and an IMU sample (at
+``imu_rate_hz``), its height above home (the barometer, at ``baro_rate_hz``; home is the world's origin, on the
+ground), and GPS1 (at ``gps_rate_hz``), which reaches it ``gps1_lag_s`` after its receiver measured it. From
+``gps_denied_from_s`` on, GPS1 reports no fix (fix type 1, no satellites, no position), as a jammed receiver does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from auxgps.core.events import Attitude, Gps1, Imu, Position
+from auxgps.core.geometry import LocalFrame
+from auxgps.sim.flight import TelemetryNoiseConfig, Trajectory, sense_imu
+
+NO_FIX = 1
+
+
+class Sensors:
+    """The events of one trajectory, step by step (:meth:`events_at`), in the order the autopilot sends them."""
+
+    def __init__(self, traj: Trajectory, frame: LocalFrame, noise: TelemetryNoiseConfig, *, rng_tel: np.random.Generator,
+                 rng_imu: np.random.Generator, bias_body_m_s2: np.ndarray, gps1_lag_s: float, gps_denied_from_s: float = np.inf) -> None:
+        self.traj, self.frame, self.noise = traj, frame, noise
+        self.rng_tel, self.rng_imu, self.bias = rng_tel, rng_imu, bias_body_m_s2
+        self.gps1_lag_s, self.gps_denied_from_s = gps1_lag_s, gps_denied_from_s
+        dt = traj.t_s[1] - traj.t_s[0]
+        every = lambda rate_hz: max(1, int(round(1.0 / (rate_hz * dt))))  # noqa: E731
+        self.imu_every, self.baro_every, self.gps_every = every(noise.imu_rate_hz), every(noise.baro_rate_hz), every(noise.gps_rate_hz)
+        self._gps_pending: list[Gps1] = []  # measured, not yet reached the autopilot
+
+    def events_at(self, i: int) -> list:
+        """What the autopilot sends at step ``i``: attitude before the IMU sample it rotates; GPS1 readings whose
+        lag has passed."""
+        traj, noise, out = self.traj, self.noise, []
+        t = float(traj.t_s[i])
+        if i % self.imu_every == 0:
+            t_imu, f_body, euler = sense_imu(traj, i, noise, self.bias, self.rng_imu)
+            out += [Attitude(t_imu, euler), Imu(t_imu, f_body)]
+        if i % self.baro_every == 0:
+            alt = -traj.p_ned_m[i, 2] + noise.altitude_m * self.rng_tel.standard_normal()
+            out.append(Position(t, np.nan, np.nan, np.nan, float(alt)))
+        if i % self.gps_every == 0:
+            self._gps_pending.append(self._gps1(i, t + self.gps1_lag_s))
+        while self._gps_pending and self._gps_pending[0].t_s <= t + 1e-9:
+            out.append(self._gps_pending.pop(0))
+        return out
+
+    def _gps1(self, i: int, t_arrival_s: float) -> Gps1:
+        noise = self.noise
+        if self.traj.t_s[i] >= self.gps_denied_from_s:
+            return Gps1(t_arrival_s, NO_FIX, 0, 0.0, 0.0, 0.0, 99.0)
+        sig = np.array([noise.gps_horizontal_m, noise.gps_horizontal_m, noise.gps_vertical_m])
+        p = self.traj.p_ned_m[i] + self.rng_tel.standard_normal(3) * sig
+        lat, lon, alt = self.frame.to_geodetic(p)
+        return Gps1(t_arrival_s, 3, 12, float(lat), float(lon), float(alt), max(noise.gps_horizontal_m, 0.01))

@@ -1,0 +1,107 @@
+"""The estimator: the same events in the same order give bit-identical decisions and outputs; what it decides
+on a short simulated flight with a GPS failure."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from auxgps.config import PipelineConfig, parse_as
+from auxgps.core.camera import CameraPose
+from auxgps.core.estimator import Estimator, FrameResult
+from auxgps.core.events import Frame
+from auxgps.core.supervisor import Mode
+from auxgps.sim.flight import SimConfig, fly, imu_bias, lawnmower_waypoints
+from auxgps.sim.render import Renderer
+from auxgps.sim.sensors import Sensors
+from tests.conftest import make_world
+
+T_UNIX_0 = 1_800_000_000.0  # s, the UTC the flight's clock starts at
+
+
+def flight_events(seed=3, denied_from_s=14.0, fps=3.0):
+    """A short survey over two cubes as the estimator's events, in delivery order: ("feed", telemetry),
+    ("frame", Frame) and ("output", t) at 10 Hz."""
+    world = make_world([{"east_m": 1.0, "north_m": 1.0, "size_m": 1.0, "color": "red"},
+                        {"east_m": -2.0, "north_m": -2.0, "size_m": 1.0, "color": "blue", "yaw_deg": 30}])
+    small = dict(north_min_m=-3.0, north_max_m=3.0, east_min_m=-3.0, east_max_m=3.0, spacing_m=3.0)
+    sim = parse_as(SimConfig, {"mapping": small}, "test")
+    rng_fly, rng_tel, rng_imu, rng_img = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
+    traj = fly(lawnmower_waypoints(sim.mapping, 12.0), sim.mapping.speed_m_s, sim.vehicle, rng_fly, sim.dt_s)
+    cfg = PipelineConfig()
+    est = Estimator(cfg, frame=world.frame)
+    sensors = Sensors(traj, world.frame, sim.noise, rng_tel=rng_tel, rng_imu=rng_imu, bias_body_m_s2=imu_bias(sim.noise, rng_imu),
+                      gps1_lag_s=est.options.gps1_lag_s, gps_denied_from_s=denied_from_s)
+    renderer = Renderer(world, est.camera)
+    frame_every, out_every = int(round(1 / (fps * sim.dt_s))), int(round(0.1 / sim.dt_s))
+    events = []
+    for i, t in enumerate(traj.t_s):
+        events += [("feed", e) for e in sensors.events_at(i)]
+        if i % frame_every == 0:
+            pose = CameraPose(traj.p_ned_m[i].copy(), traj.R_ned_body(i) @ est.R_body_cam)
+            events.append(("frame", Frame(float(t), renderer.render(pose, sim.image_effects(), rng_img).image_bgr)))
+        if i % out_every == 0:
+            events.append(("output", float(t)))
+    return world, events
+
+
+@pytest.fixture(scope="module")
+def flight():
+    return flight_events()
+
+
+def run(world, events):
+    est = Estimator(PipelineConfig(), frame=world.frame)
+    said = []
+    for kind, e in events:
+        if kind == "feed":
+            said.append(est.feed(e))
+        elif kind == "frame":
+            said.append(est.on_frame(e))
+        else:
+            said.append(est.output(e, T_UNIX_0 + e))
+    return est, said
+
+
+def bits(x):
+    """Everything in ``x`` as comparable bytes: arrays by their bytes, dataclasses field by field."""
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return (type(x).__name__,) + tuple(bits(getattr(x, f.name)) for f in dataclasses.fields(x))
+    if isinstance(x, np.ndarray):
+        return (x.dtype.str, x.shape, x.tobytes())
+    if isinstance(x, float):
+        return np.float64(x).tobytes()
+    if isinstance(x, (list, tuple)):
+        return tuple(bits(v) for v in x)
+    return x
+
+
+@pytest.mark.slow
+def test_the_same_events_give_bit_identical_outputs(flight):
+    world, events = flight
+    a_est, a = run(world, events)
+    b_est, b = run(world, events)
+    assert len(a) == len(b) == len(events)
+    for k, (x, y) in enumerate(zip(a, b)):
+        assert bits(x) == bits(y), f"event {k} ({events[k][0]}) gave different results"
+    assert bits(a_est.filter.estimate()) == bits(b_est.filter.estimate())
+    assert len(a_est.landmarks) == len(b_est.landmarks) > 0
+    for name in ("p_ned_m", "n_seen", "descriptors"):
+        np.testing.assert_array_equal(getattr(a_est.landmarks, name)[: len(a_est.landmarks)], getattr(b_est.landmarks, name)[: len(b_est.landmarks)])
+
+
+@pytest.mark.slow
+def test_a_flight_maps_while_gps1_is_good_then_positions_on_its_map(flight):
+    world, events = flight
+    est, said = run(world, events)
+    frames = [(e, r) for (kind, e), r in zip(events, said) if kind == "frame"]
+    outputs = [r for (kind, _), r in zip(events, said) if kind == "output"]
+    before = [r for e, r in frames if e.t_s < 13.0]
+    after = [r for e, r in frames if e.t_s >= 15.0]
+    assert any(r.kind == "self-check" for r in before) and not any(r.kind == "visual" for r in before)
+    assert all(r.kind in ("visual", "none") for r in after) and any(r.kind == "visual" for r in after)
+    modes = [o.decision.mode for o in outputs]
+    assert Mode.MAPPING in modes and Mode.POSITIONING in modes
+    first_positioning = next(o.t_s for o in outputs if o.decision.mode == Mode.POSITIONING)
+    assert 14.0 <= first_positioning <= 14.0 + est.options.gps1_lag_s + 0.25  # at GPS1's first no-fix report
+    assert isinstance(said[0], (type(None), str)) and isinstance(frames[0][1], FrameResult)
