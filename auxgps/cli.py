@@ -133,8 +133,38 @@ def _run(args) -> int:
         gps_input_rate_hz=args.rate,
         gps_delay_s=args.gps_delay_ms / 1000.0,
         gps1_lag_s=args.gps1_lag_ms / 1000.0,
+        record_dir=args.record,
     )
     return Companion(load_pipeline_config(args.config), opts).run()
+
+
+def _replay(args) -> int:
+    from auxgps.replay import plot_report, public, replay, score, score_lines, write_trajectories
+
+    out_dir = Path(args.out) if args.out else Path(args.recording) / "replay"
+    pipeline = load_pipeline_config(args.config) if args.config else None
+    result = replay(args.recording, out_dir, deny_gps_after_s=args.deny_gps_after, pipeline=pipeline)
+    for line in result.problems:
+        print(f"auxgps: replay: {line}", file=sys.stderr)
+    print(f"replayed {result.n_messages} messages, {result.n_frames} frames, {result.n_outputs} GPS_INPUT; logs in {out_dir}")
+    figures = {"messages": result.n_messages, "frames": result.n_frames, "gps_input": result.n_outputs, "problems": result.problems}
+    if args.deny_gps_after is not None:
+        from auxgps.io.recording import open_recording
+
+        lag_s = float(open_recording(args.recording).meta.get("options", {}).get("gps1_lag_s", 0.1))
+        scored = score(result, lag_s)
+        for line in score_lines(scored):
+            print(line)
+        if scored.get("scored"):
+            files = write_trajectories(scored, out_dir, result.clock_offset_s, result.frame)
+            print("trajectories: " + ", ".join(str(f) for f in files))
+            if args.report:
+                Path(args.report).parent.mkdir(parents=True, exist_ok=True)
+                plot_report(scored, args.report)
+                print(f"report: {args.report}")
+        figures["score"] = public(scored)
+    _write_json(args.json, figures)
+    return 0
 
 
 def _delay_ms(text):
@@ -272,6 +302,16 @@ def _positive(kind):
     return parse
 
 
+def _non_negative(kind):
+    def parse(text):
+        value = kind(text)
+        if not value >= 0:
+            raise argparse.ArgumentTypeError(f"must be zero or more, got {text}")
+        return value
+
+    return parse
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="auxgps", description="A visual back-up GPS for drones.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -306,7 +346,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="each GPS_INPUT describes the vehicle this long before it is sent; set the autopilot's GPS2_DELAY_MS to the same (default 100)")
     p.add_argument("--gps1-lag-ms", type=_delay_ms, default=100,
                    help="how old a GPS1 reading is when the autopilot gets it (GPS_RAW_INT's fix time): its receiver's lag (default 100, as ArduPilot SITL's SIM_GPS1_LAG_MS)")
+    p.add_argument("--record", metavar="DIR", help="record what auxgps sees (tlog, frames, journal, config, map) into DIR, for auxgps replay")
     p.set_defaults(func=_run)
+
+    p = sub.add_parser("replay", help="run auxgps on a recorded flight; with --deny-gps-after, score it against the GPS1 it hides")
+    p.add_argument("recording", help="a folder written by auxgps run --record")
+    p.add_argument("--deny-gps-after", type=_non_negative(float), metavar="S", help="hide GPS1 from S seconds after the recording's start; score against it")
+    p.add_argument("--config", help="pipeline config YAML (default: the one the flight ran with)")
+    p.add_argument("--out", help="folder for the replay's logs and trajectories (default: RECORDING/replay)")
+    p.add_argument("--json", help="write the figures as JSON to this file")
+    p.add_argument("--report", metavar="OUT.png", help="write a PNG report (track, estimate, error over time)")
+    p.set_defaults(func=_replay)
 
     p = sub.add_parser("bench", help="time the pipeline per frame on one thread, with maps up to a million landmarks, beside the thesis' method")
     p.add_argument("--json", help="write the figures as JSON to this file")

@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 from auxgps.config import PipelineConfig
 from auxgps.core.estimator import Estimator, EstimatorOptions, FrameResult
@@ -20,6 +20,7 @@ from auxgps.io.camera import open_camera
 from auxgps.io.flight_log import FlightLog
 from auxgps.io.link import Decoder, MavLink, Truth
 from auxgps.io.map_file import load_map, save_map
+from auxgps.io.recording import Recorder
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +36,7 @@ class RunOptions:
     gps_input_rate_hz: float = 10.0
     gps_delay_s: float = 0.1  # GPS_INPUT describes the vehicle this long ago: the autopilot's GPS2_DELAY_MS
     gps1_lag_s: float = 0.1  # a GPS1 reading describes the vehicle this long before its fix time (SITL: SIM_GPS1_LAG_MS)
+    record_dir: str | None = None  # record what the estimator sees here (auxgps.io.recording)
 
 
 class Companion:
@@ -48,6 +50,9 @@ class Companion:
         self.estimator = Estimator(cfg, EstimatorOptions(gps_delay_s=opts.gps_delay_s, gps1_lag_s=opts.gps1_lag_s),
                                    landmarks=landmarks, frame=frame)
         self.log = FlightLog(opts.log_dir)
+        self.recorder = None
+        if opts.record_dir:
+            self.recorder = Recorder(opts.record_dir, options=asdict(opts), pipeline=asdict(cfg), start_map=opts.map_in)
         self._decoder = Decoder()
         self._lock = threading.Lock()
         self._truth: Truth | None = None
@@ -61,6 +66,8 @@ class Companion:
 
     def _on_message(self, msg, arrival_s: float) -> None:
         with self._lock:
+            if self.recorder is not None:
+                self.recorder.message(msg, arrival_s)
             rec = self._decoder(msg, arrival_s)
             if rec is None:
                 return
@@ -89,6 +96,8 @@ class Companion:
         t_unix_s = time.time()
         with self._lock:
             t_s = time.monotonic()
+            if self.recorder is not None:
+                self.recorder.output(t_s, t_unix_s)
             out = self.estimator.output(t_s, t_unix_s)
         if out.gps is None:
             return
@@ -103,11 +112,14 @@ class Companion:
 
     def _process(self, frame) -> FrameResult:
         with self._lock:
+            k = self.recorder.begin(frame) if self.recorder is not None else None
             job = self.estimator.begin_frame(frame)
         if isinstance(job, FrameResult):
             return job
         work = self.estimator.process_frame(job)  # slow: detection, mapping, locating; the map is this thread's
         with self._lock:
+            if self.recorder is not None:
+                self.recorder.finish(k)
             res = self.estimator.finish_frame(work)
         self.log.frame(res, self.estimator.frame)
         return res
@@ -136,4 +148,7 @@ class Companion:
                 save_map(self.opts.map_out, est.landmarks, est.frame)
                 log.info("map of %d landmarks saved to %s", len(est.landmarks), self.opts.map_out)
             self.log.close()
+            if self.recorder is not None:
+                stats = self.recorder.close()
+                log.info("recording in %s: %s", self.opts.record_dir, stats)
         return 0

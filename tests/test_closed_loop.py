@@ -45,11 +45,12 @@ def stop(*procs: subprocess.Popen | None) -> None:
 
 @pytest.fixture(scope="module")
 def short_flight(tmp_path_factory):
-    """A short survey on the emulator, GPS1 failing at 20 s, flown by `auxgps run`."""
+    """A short survey on the emulator, GPS1 failing at 20 s, flown by `auxgps run --record`."""
     tmp_path = tmp_path_factory.mktemp("short_flight")
     port = free_port()
     emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "6", "--fail-gps1-at", "20", "--max-seconds", "150")
-    run = start_run(port, tmp_path / "run", "--duration", "150", "--save-map", str(tmp_path / "map.npz"))
+    run = start_run(port, tmp_path / "run", "--duration", "150", "--save-map", str(tmp_path / "map.npz"),
+                    "--record", str(tmp_path / "rec"))
     try:
         emu.wait(timeout=170)
     finally:
@@ -74,6 +75,84 @@ def test_short_flight_lands_home_on_gps2(short_flight):
     assert (tmp_path / "map.npz").exists()  # saved at the end of the flight, atomically
     events = (tmp_path / "run" / "events.csv").read_text()
     assert "GPS1 lost" in events and "positioning" in events
+
+
+def replay_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "auxgps.cli", "replay", *args], cwd=REPO, capture_output=True, text=True, timeout=600)
+
+
+def gps_input_rows(path: Path) -> list[dict]:
+    import csv
+
+    return list(csv.DictReader(open(path)))
+
+
+atol_replay_m = 1e-3  # 1 mm: the replay is the flight's own computation
+
+
+@pytest.mark.slow
+def test_replay_of_a_recorded_flight_reproduces_its_gps_input(short_flight):
+    import numpy as np
+
+    from auxgps.core.geometry import LocalFrame
+
+    rec, out = short_flight / "rec", short_flight / "replay"
+    proc = replay_cli(str(rec), "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    flown, replayed = gps_input_rows(short_flight / "run" / "gps_input.csv"), gps_input_rows(out / "gps_input.csv")
+    assert len(flown) > 500 and len(replayed) == len(flown)
+    assert [r["fix_type"] for r in replayed] == [r["fix_type"] for r in flown]
+    assert {r["fix_type"] for r in flown} >= {"3"} and {r["mode"] for r in flown} >= {"mapping", "positioning"}
+    lat = lambda rows: np.array([float(r["lat_deg"]) for r in rows])  # noqa: E731
+    lon = lambda rows: np.array([float(r["lon_deg"]) for r in rows])  # noqa: E731
+    frame = LocalFrame(float(flown[0]["lat_deg"]), float(flown[0]["lon_deg"]), 0.0)
+    a = frame.to_ned(lat_deg=lat(flown), lon_deg=lon(flown), alt_amsl_m=np.zeros(len(flown)))
+    b = frame.to_ned(lat_deg=lat(replayed), lon_deg=lon(replayed), alt_amsl_m=np.zeros(len(replayed)))
+    assert np.max(np.linalg.norm(a[:, :2] - b[:, :2], axis=1)) <= atol_replay_m
+    stats = json.loads((rec / "recording_stats.json").read_text())
+    assert stats["frames"] > 100 and stats["frames_not_written"] == 0
+
+
+@pytest.mark.slow
+def test_replay_with_gps_denied_early_is_scored_against_the_hidden_gps1(short_flight, tmp_path):
+    out = tmp_path / "denied"
+    proc = replay_cli(str(short_flight / "rec"), "--deny-gps-after", "8", "--out", str(out), "--json", str(tmp_path / "f.json"),
+                      "--report", str(tmp_path / "report.png"))
+    assert proc.returncode == 0, proc.stderr
+    fig = json.loads((tmp_path / "f.json").read_text())["score"]
+    g = fig["gps1"]
+    assert fig["scored"] and g["outputs_compared"] >= 50  # the hidden GPS1 covers the 8 s to the flight's own failure at 20 s
+    assert g["rms_m"] < 0.5 and g["availability"] > 0.9  # the emulator's fixes are good to a decimetre; GPS1 to a few cm
+    assert fig["truth"]["rms_m"] < 0.5
+    for name in ("estimate.tum", "reference_gps1.tum", "tracks.geojson"):
+        assert (out / name).stat().st_size > 0
+    assert (tmp_path / "report.png").stat().st_size > 10_000
+    assert "against the hidden GPS1" in proc.stdout
+
+
+@pytest.mark.slow
+def test_a_damaged_recording_is_replayed_as_far_as_it_goes(short_flight, tmp_path):
+    import shutil
+
+    rec = tmp_path / "rec"
+    shutil.copytree(short_flight / "rec", rec)
+    tlog = (rec / "flight.tlog").read_bytes()
+    (rec / "flight.tlog").write_bytes(tlog[: len(tlog) // 2] + b"\x07" * 999)  # cut, with garbage after
+    for k in (5, 6, 7):
+        (rec / "frames" / f"{k:06d}.png").unlink()
+    lines = (rec / "frames.csv").read_text().splitlines(keepends=True)
+    lines[20], lines[21] = lines[21], lines[20]  # two frames out of time order
+    (rec / "frames.csv").write_text("".join(lines) + "12")  # and a cut last line
+    proc = replay_cli(str(rec), "--out", str(tmp_path / "out"))
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    problems = [line for line in proc.stderr.splitlines() if line.startswith("auxgps: replay:")]
+    assert any("000005.png missing" in p for p in problems)
+    assert any("out of time order" in p for p in problems)
+    assert any("last line is cut" in p for p in problems)
+    assert any("tlog is cut" in p for p in problems)
+    assert len(gps_input_rows(tmp_path / "out" / "gps_input.csv")) > 100
 
 
 @pytest.mark.slow

@@ -222,7 +222,7 @@ def main(argv=None) -> int:
         gs = GroundStation(home)
         run = subprocess.Popen([sys.executable, "-m", "auxgps.cli", "run", "--connect", "tcp:127.0.0.1:5762",
                                 "--camera", f"sim:{args.world}", "--log-dir", str(out / "run"), "--duration", "1500",
-                                "--gps-delay-ms", str(GPS_DELAY_MS)],
+                                "--gps-delay-ms", str(GPS_DELAY_MS), "--record", str(out / "rec")],
                                cwd=REPO, stdout=open(out / "run.log", "w"), stderr=subprocess.STDOUT)
         result = fly(gs)
         run.terminate()
