@@ -15,8 +15,7 @@ import numpy as np
 from tabulate import tabulate
 
 from auxgps.config import load_pipeline_config
-from auxgps.errors import AuxGpsError, ConfigError
-from auxgps.sim.flight import load_sim_config
+from auxgps.errors import AuxGpsError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 DEMO_WORLD = CONFIG_DIR / "worlds" / "cubes4_0.5m_different.yaml"
@@ -72,6 +71,7 @@ def summary_table(summary: dict) -> str:
 
 def _eval(args) -> int:
     from auxgps.evaluation.driver import evaluate
+    from auxgps.sim.flight import load_sim_config
 
     summary = evaluate(
         args.world,
@@ -187,6 +187,7 @@ def _bench(args) -> int:
     import time
 
     from auxgps.evaluation.bench import BenchConfig, bench_report, run_bench, tiny_sim_config
+    from auxgps.sim.flight import load_sim_config
 
     sim = load_sim_config(args.sim_config)
     sizes = tuple(int(x) for x in args.map_sizes.split(",")) if args.map_sizes else None

@@ -14,7 +14,7 @@ from auxgps.core.mapping import Mapper
 from auxgps.core.nav import NavSample
 from auxgps.errors import FrameError
 from auxgps.evaluation.scenario import run_once
-from auxgps.sim.flight import SimConfig, SurveyConfig
+from auxgps.sim.flight import SimConfig
 from auxgps.sim.render import Renderer
 from auxgps.sim.texture import gravel_texture
 from tests.conftest import make_world

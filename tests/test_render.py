@@ -5,7 +5,7 @@ import time
 import cv2
 import numpy as np
 
-from auxgps.core.camera import CameraPose, PinholeCamera
+from auxgps.core.camera import CameraPose
 from auxgps.core.geometry import R_BODY_CAM_DOWN, R_ned_body_from_euler
 from auxgps.sim.render import Renderer, face_shade
 from tests.conftest import make_world

@@ -15,16 +15,16 @@ def good(t, p=P):
 def test_healthy_gps1_means_mapping():
     s = Supervisor()
     s.gps1(good(0.0), None, None)
-    d = s.decide(0.1, sigma_h_m=0.05, last_correction_t_s=0.0)
+    d = s.decide(0.1, sigma_h_worst_m=0.05, last_correction_t_s=0.0)
     assert d.mode == Mode.MAPPING and d.gps1_trusted and d.status == "auxgps: mapping"
 
 
 def test_lost_gps1_switches_to_positioning_at_once_and_says_so():
     s = Supervisor()
     s.gps1(good(0.0), None, None)
-    s.decide(0.1, sigma_h_m=0.05, last_correction_t_s=0.0)
+    s.decide(0.1, sigma_h_worst_m=0.05, last_correction_t_s=0.0)
     s.gps1(Gps1Sample(1.5, 0, 3, P, 99.0), P, COV)
-    d = s.decide(1.6, sigma_h_m=0.1, last_correction_t_s=1.5)
+    d = s.decide(1.6, sigma_h_worst_m=0.1, last_correction_t_s=1.5)
     assert d.mode == Mode.POSITIONING and not d.gps1_trusted
     assert "GPS1 lost" in d.status and "positioning" in d.status
 
@@ -58,18 +58,18 @@ def test_gps1_rejoins_only_after_agreeing_for_rejoin_s():
 
 def test_no_recent_correction_means_no_fix():
     s = Supervisor()
-    assert s.decide(0.0, sigma_h_m=None, last_correction_t_s=None).mode == Mode.NO_FIX
-    assert s.decide(20.0, sigma_h_m=0.1, last_correction_t_s=2.0).mode == Mode.NO_FIX  # 18 s old
-    assert s.decide(20.0, sigma_h_m=0.5, last_correction_t_s=8.0).mode == Mode.POSITIONING  # 12 s on the IMU
-    assert s.decide(10.0, sigma_h_m=5.0, last_correction_t_s=9.9).mode == Mode.NO_FIX  # too uncertain
+    assert s.decide(0.0, sigma_h_worst_m=None, last_correction_t_s=None).mode == Mode.NO_FIX
+    assert s.decide(20.0, sigma_h_worst_m=0.1, last_correction_t_s=2.0).mode == Mode.NO_FIX  # 18 s old
+    assert s.decide(20.0, sigma_h_worst_m=0.5, last_correction_t_s=8.0).mode == Mode.POSITIONING  # 12 s on the IMU
+    assert s.decide(10.0, sigma_h_worst_m=5.0, last_correction_t_s=9.9).mode == Mode.NO_FIX  # too uncertain
 
 
 def test_status_lines_at_most_one_a_second():
     s = Supervisor()
     s.gps1(good(0.0), None, None)
-    first = s.decide(0.0, sigma_h_m=0.05, last_correction_t_s=0.0)
+    first = s.decide(0.0, sigma_h_worst_m=0.05, last_correction_t_s=0.0)
     s.gps1(Gps1Sample(0.2, 0, 3, P, 99.0), P, COV)
-    second = s.decide(0.3, sigma_h_m=0.1, last_correction_t_s=0.2)
-    third = s.decide(1.0, sigma_h_m=0.1, last_correction_t_s=0.9)
+    second = s.decide(0.3, sigma_h_worst_m=0.1, last_correction_t_s=0.2)
+    third = s.decide(1.0, sigma_h_worst_m=0.1, last_correction_t_s=0.9)
     assert first.status is not None and second.status is None and third.status is not None
     assert "positioning" in third.status

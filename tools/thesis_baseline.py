@@ -107,7 +107,7 @@ class ThesisBaseline:
         t0 = time.perf_counter()
         uv, desc = feat
         yaw = float(tel.euler_rad[2])
-        p_ne = np.asarray(tel.p_gps_ned_m, float)[:2] + self._offset_ne_m(uv, yaw, tel.alt_m)
+        p_ne = np.asarray(tel.p_gps_ned_m, float)[:2] + self._offset_ne_m(uv, yaw, tel.alt_above_origin_m)
         k = self._lookup(desc)
         if k is not None:
             f = self.store[k]
@@ -132,7 +132,7 @@ class ThesisBaseline:
         times["matching"] = times.get("matching", 0.0) + (t1 - t0) * 1e3
         if k is None:
             return None, times
-        p_ne = self.store[k].avg_ne_m - self._offset_ne_m(uv, float(tel.euler_rad[2]), tel.alt_m)
+        p_ne = self.store[k].avg_ne_m - self._offset_ne_m(uv, float(tel.euler_rad[2]), tel.alt_above_origin_m)
         times["solving"] = (time.perf_counter() - t1) * 1e3
         return p_ne, times
 

@@ -276,7 +276,7 @@ class Estimator:
         week time): the vehicle ``gps_delay_s`` earlier, with a fix only while auxgps believes it."""
         t_described = t_s - self.options.gps_delay_s
         est = self.filter.estimate_at(t_described) if self.filter is not None else None
-        decision = self.supervisor.decide(t_s, sigma_h_m=est.sigma_h_m if est is not None else None,
+        decision = self.supervisor.decide(t_s, sigma_h_worst_m=est.sigma_h_worst_m if est is not None else None,
                                           last_correction_t_s=self.last_correction_t_s)
         if self.frame is None:
             return Output(t_s, t_described, None, decision, est)

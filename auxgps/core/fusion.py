@@ -95,8 +95,8 @@ class FusedEstimate:
     cov_v_m2_s2: np.ndarray
 
     @property
-    def sigma_h_m(self) -> float:
-        """Horizontal one-sigma along the worst axis, m (what GPS_INPUT's horiz_accuracy should say)."""
+    def sigma_h_worst_m(self) -> float:
+        """Horizontal one-sigma along the worst axis, m (what GPS_INPUT's horiz_accuracy says)."""
         return float(np.sqrt(np.linalg.eigvalsh(self.cov_p_m2[:2, :2])[-1]))
 
     @property
@@ -183,17 +183,17 @@ class NavFilter:
         self._retake(later)
         return self._decide(decision)
 
-    def update_altitude(self, t_s: float, alt_m: float, sigma_m: float) -> bool:
+    def update_altitude(self, t_s: float, alt_above_origin_m: float, sigma_m: float) -> bool:
         """Fuse a barometric height above the origin (m) measured at ``t_s`` (up to ``history_s`` ago)."""
         t_s = float(t_s)
-        if not (np.isfinite(t_s) and np.isfinite(alt_m) and np.isfinite(sigma_m) and sigma_m > 0):
+        if not (np.isfinite(t_s) and np.isfinite(alt_above_origin_m) and np.isfinite(sigma_m) and sigma_m > 0):
             log.warning("altitude sample at t=%.3f s rejected: not finite", t_s)
             return False
         later = self._rewind(t_s)
         if later is None:
             log.warning("altitude sample at t=%.3f s rejected: older than the history", t_s)
             return False
-        self._take("altitude", t_s, (float(alt_m), float(sigma_m)))
+        self._take("altitude", t_s, (float(alt_above_origin_m), float(sigma_m)))
         self._retake(later)
         return True
 
@@ -217,7 +217,7 @@ class NavFilter:
     def prior(self, t_s: float | None = None) -> PositionPrior:
         """Where the vehicle is at ``t_s`` (default: the state's time), for the localiser's search."""
         est = self.estimate() if t_s is None else self.estimate_at(t_s)
-        return PositionPrior(est.p_ned_m, est.sigma_h_m)
+        return PositionPrior(est.p_ned_m, est.sigma_h_worst_m)
 
     @property
     def accel_bias_body_m_s2(self) -> np.ndarray:
@@ -295,9 +295,9 @@ class NavFilter:
             H = _H_ne(t_s - self.t_s, visual)
             self._ekf.update(p_ne_m.reshape(2, 1), lambda x: H, lambda x: H @ x, R=cov_ne_m2)
         elif kind == "altitude":
-            alt_m, sigma_m = data
+            alt_above_origin_m, sigma_m = data
             H = _H_down(t_s - self.t_s)
-            self._ekf.update(np.array([[-alt_m]]), lambda x: H, lambda x: H @ x, R=np.array([[sigma_m**2]]))
+            self._ekf.update(np.array([[-alt_above_origin_m]]), lambda x: H, lambda x: H @ x, R=np.array([[sigma_m**2]]))
         elif kind == "reinit":
             self._reinitialise(*data)
         else:

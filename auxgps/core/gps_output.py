@@ -72,7 +72,7 @@ def gps_output(
     if estimate is None:
         return GpsOutput(week, week_ms, FIX_NONE, frame.lat_deg, frame.lon_deg, frame.alt_amsl_m, np.zeros(3), 999.0, 999.0, 99.0, 99.99, 99.99, 0)
     lat, lon, alt = frame.to_geodetic(estimate.p_ned_m)
-    sigma_h = estimate.sigma_h_m
+    sigma_h = estimate.sigma_h_worst_m
     fix = FIX_3D if believed and np.isfinite(sigma_h) and sigma_h <= max_sigma_h_m else FIX_NONE
     return GpsOutput(
         time_week=week,

@@ -26,7 +26,8 @@ from auxgps.core.stopwatch import null_stopwatch
 
 @dataclass(frozen=True)
 class PositionPrior:
-    """Where the vehicle is believed to be: ``p_ned_m`` (3,) and a horizontal one-sigma ``sigma_h_m``."""
+    """Where the vehicle is believed to be: ``p_ned_m`` (3,) and a horizontal one-sigma ``sigma_h_m``, the same on
+    every axis (the search is a circle; the filter gives its worst axis)."""
 
     p_ned_m: np.ndarray
     sigma_h_m: float
@@ -44,8 +45,9 @@ class Fix:
     n_features: int
 
     @property
-    def sigma_h_m(self) -> float:
-        """Horizontal one-sigma (root of the mean of the north and east variances), m."""
+    def sigma_h_rms_m(self) -> float:
+        """Horizontal one-sigma as the root of the mean of the north and east variances, m (what the fixes log
+        shows; the filter's output reports its worst axis, :attr:`FusedEstimate.sigma_h_worst_m`)."""
         return float(np.sqrt(0.5 * (self.cov_ned_m2[0, 0] + self.cov_ned_m2[1, 1])))
 
 
@@ -122,7 +124,7 @@ class _View:
     features: Features
     feature_tree: cKDTree
     R_ned_cam: np.ndarray
-    alt_m: float
+    alt_above_origin_m: float
     cand_in_cam_axes_m: np.ndarray
 
 
@@ -190,21 +192,21 @@ class Localiser:
             + [1.0 / np.deg2rad(noise.heading_deg) ** 2]
         )
 
-    def locate(self, features: Features, t_s: float, R_ned_body: np.ndarray, alt_m: float, prior: PositionPrior | None,
+    def locate(self, features: Features, t_s: float, R_ned_body: np.ndarray, alt_above_origin_m: float, prior: PositionPrior | None,
                candidate_ids: np.ndarray | None = None) -> LocateResult:
-        """Locate one frame. ``R_ned_body`` and ``alt_m`` come from the autopilot (attitude, barometer).
+        """Locate one frame. ``R_ned_body`` and ``alt_above_origin_m`` come from the autopilot (attitude, barometer).
 
-        ``candidate_ids``: what :meth:`candidates` gives for this ``alt_m`` and ``prior`` on the map as it is,
+        ``candidate_ids``: what :meth:`candidates` gives for this ``alt_above_origin_m`` and ``prior`` on the map as it is,
         when the caller has it already (it asked for the frame's :meth:`detection_scale`); else it is looked up.
         """
         cfg = self.cfg.positioning
         n_feat = len(features)
         if n_feat < cfg.min_inliers:
             return NoFix(t_s, f"{n_feat} features, fewer than {cfg.min_inliers}", n_features=n_feat)
-        if not (np.all(np.isfinite(R_ned_body)) and np.isfinite(alt_m)):
+        if not (np.all(np.isfinite(R_ned_body)) and np.isfinite(alt_above_origin_m)):
             return NoFix(t_s, "attitude or altitude is not finite", n_features=n_feat)
 
-        cand = self.candidates(alt_m, prior) if candidate_ids is None else candidate_ids
+        cand = self.candidates(alt_above_origin_m, prior) if candidate_ids is None else candidate_ids
         if len(cand) < cfg.min_inliers:
             return NoFix(t_s, f"{len(cand)} mapped landmarks near the predicted position", n_features=n_feat)
 
@@ -217,7 +219,7 @@ class Localiser:
         radius_px = np.inf
         if prior is not None:
             search_m = max(3.0 * prior.sigma_h_m, cfg.min_search_radius_m)
-            radius_px = search_m * self.camera.focal_px / max(alt_m, 1.0) + inlier_px
+            radius_px = search_m * self.camera.focal_px / max(alt_above_origin_m, 1.0) + inlier_px
         # Tracking (a prior tight enough to tell apart objects, and the symmetric readings of a large one):
         # candidates are the landmarks predicted near each feature. Acquisition (no prior, or a loose one after
         # a long stretch without fixes): candidates come from descriptors alone, and the evidence must be
@@ -225,7 +227,7 @@ class Localiser:
         tracking = prior is not None and 3.0 * prior.sigma_h_m <= cfg.max_tracking_search_m
         p_cand_ned_m = self.map.p_ned_m[cand].astype(float)  # (M, 3) m: for the guided match and the readings
         if tracking:
-            pose = CameraPose(np.array([prior.p_ned_m[0], prior.p_ned_m[1], -alt_m]), R_ned_cam)
+            pose = CameraPose(np.array([prior.p_ned_m[0], prior.p_ned_m[1], -alt_above_origin_m]), R_ned_cam)
             with self.stopwatch("matching"):
                 feat_i, lm_id = self._match_guided(features, cand, p_cand_ned_m, pose, radius_px)
             min_inliers, margin = cfg.min_inliers, cfg.ambiguity_margin
@@ -239,14 +241,14 @@ class Localiser:
         # One hypothesis per correspondence: the camera's north/east if this feature is this landmark.
         L = self.map.p_ned_m[lm_id].astype(float)
         d = rays[feat_i]
-        cam_down = -alt_m
+        cam_down = -alt_above_origin_m
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (L[:, 2] - cam_down) / d[:, 2]
         ok = np.isfinite(t) & (t > 0.5)
         feat_i, lm_id, L, d, t = feat_i[ok], lm_id[ok], L[ok], d[ok], t[ok]
         hyp = L[:, :2] - t[:, None] * d[:, :2]
         if prior is not None:
-            gate = search_m + inlier_px / self.camera.focal_px * alt_m
+            gate = search_m + inlier_px / self.camera.focal_px * alt_above_origin_m
             inside = np.linalg.norm(hyp - prior.p_ned_m[:2], axis=1) <= gate
             feat_i, lm_id, L, d, t, hyp = feat_i[inside], lm_id[inside], L[inside], d[inside], t[inside], hyp[inside]
         n_corr = len(feat_i)
@@ -266,7 +268,7 @@ class Localiser:
             return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
         # Unbalanced: half the build time of a frame's features, the same nearest distances.
         feature_tree = cKDTree(features.uv_px, balanced_tree=False, compact_nodes=False)
-        view = _View(features, feature_tree, R_ned_cam, alt_m, p_cand_ned_m @ R_ned_cam)
+        view = _View(features, feature_tree, R_ned_cam, alt_above_origin_m, p_cand_ned_m @ R_ned_cam)
         verdict = self._choose(corr, view, prior, seeds, support, min_inliers, margin)
         if isinstance(verdict, str):
             return NoFix(t_s, verdict, best_support, n_corr, n_feat)
@@ -347,39 +349,39 @@ class Localiser:
         """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
         dist2 = cdist(corr.hyp, corr.hyp[seed][None], "sqeuclidean")[:, 0]  # as _consensus measures: the same members
         inl = self._one_per_feature(dist2 <= np.square(corr.tau), corr.feat_i, dist2)
-        fit = self._refine(np.array([*corr.hyp[seed], -view.alt_m]), corr, inl, view.alt_m, 1.0 / view.features.scale)
+        fit = self._refine(np.array([*corr.hyp[seed], -view.alt_above_origin_m]), corr, inl, view.alt_above_origin_m, 1.0 / view.features.scale)
         explained = self._explained_share(fit.p, view)
         return _Reading(fit.p, fit.cov, fit.inl, fit.fit_quality * explained, explained, fit.attitude_m2)
 
-    def detection_scale(self, alt_m: float, prior: PositionPrior | None, candidate_ids: np.ndarray | None = None) -> float:
+    def detection_scale(self, alt_above_origin_m: float, prior: PositionPrior | None, candidate_ids: np.ndarray | None = None) -> float:
         """The image scale (at most 1) at which to detect a frame so that its descriptors see the landmarks in
         view at about the range the map's descriptors saw them from: a frame from half the mapping range is
         detected at half size. 1 without a prior, without landmarks near it with a known range, or when the
         frame is not much closer than the map's views (the detector's own pyramid covers ``scale_factor``).
-        ``candidate_ids``: :meth:`candidates` for this ``alt_m`` and ``prior``, when the caller has them (to pass
+        ``candidate_ids``: :meth:`candidates` for this ``alt_above_origin_m`` and ``prior``, when the caller has them (to pass
         on to :meth:`locate`, so that a frame looks them up once)."""
-        if prior is None or not np.isfinite(alt_m):
+        if prior is None or not np.isfinite(alt_above_origin_m):
             return 1.0
-        cand = self.candidates(alt_m, prior) if candidate_ids is None else candidate_ids
+        cand = self.candidates(alt_above_origin_m, prior) if candidate_ids is None else candidate_ids
         range_map_m = self.map.descriptor_range_m[cand].astype(float)
         known = np.isfinite(range_map_m) & (range_map_m > 0)
         if not np.any(known):
             return 1.0
-        camera_ned_m = np.array([prior.p_ned_m[0], prior.p_ned_m[1], -alt_m])
+        camera_ned_m = np.array([prior.p_ned_m[0], prior.p_ned_m[1], -alt_above_origin_m])
         range_now_m = np.linalg.norm(self.map.p_ned_m[cand[known]] - camera_ned_m, axis=1)
         scale = float(np.median(range_now_m / range_map_m[known]))
         if scale * self.cfg.detector.scale_factor >= 1.0:
             return 1.0
         return float(np.clip(scale, self.cfg.positioning.min_detection_scale, 1.0))
 
-    def candidates(self, alt_m: float, prior: PositionPrior | None) -> np.ndarray:
+    def candidates(self, alt_above_origin_m: float, prior: PositionPrior | None) -> np.ndarray:
         """Ids of the usable landmarks within reach of the prior's footprint (all usable ones without a prior)."""
         cfg = self.cfg.positioning
         m = self.cfg.mapping
         if prior is None:
             ids = np.arange(len(self.map))
         else:
-            reach = max(alt_m, 1.0) * self._footprint_tan + 3.0 * prior.sigma_h_m + cfg.footprint_margin_m
+            reach = max(alt_above_origin_m, 1.0) * self._footprint_tan + 3.0 * prior.sigma_h_m + cfg.footprint_margin_m
             n, e = prior.p_ned_m[0], prior.p_ned_m[1]
             ids = self.map.ids_in_box((n - reach, n + reach), (e - reach, e + reach))
         return ids[self.map.usable(ids, m.min_seen, m.max_mean_chi2, m.min_found_ratio)]
@@ -493,7 +495,7 @@ class Localiser:
         keep[order[first]] = True
         return keep
 
-    def _refine(self, p0: np.ndarray, corr: _Correspondences, inl: np.ndarray, alt_m: float, pixel_size: float = 1.0) -> _Fit:
+    def _refine(self, p0: np.ndarray, corr: _Correspondences, inl: np.ndarray, alt_above_origin_m: float, pixel_size: float = 1.0) -> _Fit:
         """Weighted least squares over the inliers for the camera position and a small attitude correction.
 
         Unknowns: position (3) and a rotation ``dtheta`` (3, NED) of the telemetry attitude, which turns each ray
@@ -546,7 +548,7 @@ class Localiser:
             A[:3, 3:] -= wtd_x
             A[3:, :3] += wtd_x
             b = np.concatenate([w @ PL, wt @ d_cross_L])
-            b[2] += -alt_m * prior_info[2, 2]
+            b[2] += -alt_above_origin_m * prior_info[2, 2]
             z = np.linalg.solve(A, b)
             p, dtheta = z[:3], z[3:]
             # Offset of each landmark from its corrected ray, m: P (L - p) + t d x dtheta, with d x dtheta as

@@ -78,7 +78,7 @@ class Mapper:
         sigma_px = self.cfg.noise.pixel_px * self.cfg.detector.scale_factor ** features.octave / features.scale
 
         # Candidates: landmarks whose projection falls in the image.
-        reach = max(nav.alt_m, 1.0) * self._footprint_tan + 5.0
+        reach = max(nav.alt_above_origin_m, 1.0) * self._footprint_tan + 5.0
         with self.stopwatch("matching"):
             cand = self.map.ids_in_box((c[0] - reach, c[0] + reach), (c[1] - reach, c[1] + reach))
         matched_feat = matched_lm = np.zeros(0, int)

@@ -13,18 +13,18 @@ from auxgps.core.camera import CameraPose
 class NavSample:
     """The autopilot's telemetry at a frame's capture time.
 
-    t_s : s; p_gps_ned_m : (3,) m or None without GPS; alt_m : height above the local origin (barometric), m;
+    t_s : s; p_gps_ned_m : (3,) m or None without GPS; alt_above_origin_m : height above the local origin (barometric), m;
     R_ned_body : (3, 3) attitude.
     """
 
     t_s: float
     p_gps_ned_m: np.ndarray | None
-    alt_m: float
+    alt_above_origin_m: float
     R_ned_body: np.ndarray
 
     def camera_pose(self, R_body_cam: np.ndarray) -> CameraPose:
         """Camera pose from GPS north/east and barometric height (the camera at the body origin)."""
         if self.p_gps_ned_m is None:
             raise ValueError("no GPS position in this sample")
-        p = np.array([self.p_gps_ned_m[0], self.p_gps_ned_m[1], -self.alt_m], float)
+        p = np.array([self.p_gps_ned_m[0], self.p_gps_ned_m[1], -self.alt_above_origin_m], float)
         return CameraPose(p, self.R_ned_body @ R_body_cam)

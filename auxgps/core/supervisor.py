@@ -106,7 +106,7 @@ class Supervisor:
             self.gps1_trusted = True
             self._say(f"GPS1 agrees with auxgps for {cfg.rejoin_s:.0f} s: mapping again", sample.t_s)
 
-    def decide(self, t_s: float, *, sigma_h_m: float | None, last_correction_t_s: float | None) -> Decision:
+    def decide(self, t_s: float, *, sigma_h_worst_m: float | None, last_correction_t_s: float | None) -> Decision:
         """The mode at ``t_s`` given the filter's horizontal sigma and the time of its last correction."""
         cfg = self.cfg
         if self._gps1 is not None and t_s - self._gps1.t_s > cfg.stale_s and self.gps1_trusted:
@@ -114,9 +114,9 @@ class Supervisor:
             self._agree_since = None
             self._say("GPS1 silent: positioning visually", t_s)
         believed = (
-            sigma_h_m is not None
-            and np.isfinite(sigma_h_m)
-            and sigma_h_m <= cfg.max_sigma_h_m
+            sigma_h_worst_m is not None
+            and np.isfinite(sigma_h_worst_m)
+            and sigma_h_worst_m <= cfg.max_sigma_h_m
             and last_correction_t_s is not None
             and t_s - last_correction_t_s <= cfg.max_fix_age_s
         )

@@ -32,7 +32,7 @@ class RunRecord:
     landmark_err_ne_m: np.ndarray  # (L, 2) estimate - truth, landmarks used for positioning
     landmark_seen_err_ne_m: np.ndarray  # (L', 2) the same for every landmark seen more than 10 times
     fix_err_ne_m: np.ndarray  # (F, 2) fix - truth, every fix while denied
-    fix_sigma_h_m: np.ndarray  # (F,) reported one-sigma
+    fix_sigma_h_rms_m: np.ndarray  # (F,) reported one-sigma, root-mean of the north and east variances
     fix_gated: np.ndarray  # (F,) bool, rejected by the filter's gate
     n_eligible_frames: int  # denied frames with at least one cube entirely in view (or all, without cubes)
     n_eligible_fixed: int
@@ -230,7 +230,7 @@ def run_once(
         if res.kind == "visual":
             counts["eligible_fixed"] += eligible
             fix_err.append(res.located.p_ned_m[:2] - traj.p_ned_m[seen.i, :2])
-            fix_sigma.append(res.located.sigma_h_m)
+            fix_sigma.append(res.located.sigma_h_rms_m)
             fix_gated.append(not res.decision.accepted)
             fix_applied.append(t_capture + den.fix_latency_s)
         else:
@@ -258,7 +258,7 @@ def run_once(
         landmark_err_ne_m=lm_err,
         landmark_seen_err_ne_m=lm_err_seen,
         fix_err_ne_m=np.array(fix_err).reshape(-1, 2),
-        fix_sigma_h_m=np.array(fix_sigma),
+        fix_sigma_h_rms_m=np.array(fix_sigma),
         fix_gated=np.array(fix_gated, bool),
         n_eligible_frames=counts["eligible"],
         n_eligible_fixed=counts["eligible_fixed"],

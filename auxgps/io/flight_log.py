@@ -63,7 +63,7 @@ class FlightLog(CsvLog):
         lat_deg, lon_deg, _ = frame.to_geodetic(loc.p_ned_m)
         d = res.decision
         self.row("fixes", t_s=res.t_s, kind=res.kind, reason=res.reason, n=n, m2=f"{d.mahalanobis2:.2f}" if d else "",
-                 accepted=d.accepted if d else "", lat_deg=float(lat_deg), lon_deg=float(lon_deg), sigma_m=round(loc.sigma_h_m, 3))
+                 accepted=d.accepted if d else "", lat_deg=float(lat_deg), lon_deg=float(lon_deg), sigma_m=round(loc.sigma_h_rms_m, 3))
 
     def output(self, out: Output) -> None:
         g = out.gps

@@ -256,13 +256,13 @@ def fly(waypoints_ned_m: np.ndarray, speed_m_s: float, vehicle: VehicleConfig, r
 class Telemetry:
     """What the autopilot reports at one instant. Angles rad, lengths m, NED about the local origin.
 
-    ``p_gps_ned_m`` is the GPS position (None while GPS is denied); ``alt_m`` the barometric height above the
+    ``p_gps_ned_m`` is the GPS position (None while GPS is denied); ``alt_above_origin_m`` the barometric height above the
     origin; ``euler_rad`` the attitude estimate (roll, pitch, yaw).
     """
 
     t_s: float
     p_gps_ned_m: np.ndarray | None
-    alt_m: float
+    alt_above_origin_m: float
     euler_rad: np.ndarray
 
     @property
