@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 from pathlib import Path
@@ -134,6 +135,7 @@ def _run(args) -> int:
         gps_delay_s=args.gps_delay_ms / 1000.0,
         gps1_lag_s=args.gps1_lag_ms / 1000.0,
         record_dir=args.record,
+        connect_timeout_s=args.connect_timeout,
     )
     return Companion(load_pipeline_config(args.config), opts).run()
 
@@ -190,7 +192,7 @@ def _bench(args) -> int:
     from auxgps.sim.flight import load_sim_config
 
     sim = load_sim_config(args.sim_config)
-    sizes = tuple(int(x) for x in args.map_sizes.split(",")) if args.map_sizes else None
+    sizes = args.map_sizes
     if args.tiny:
         sim = tiny_sim_config(sim)
         sizes = sizes or (5_000, 20_000)
@@ -295,17 +297,45 @@ def _locate(args) -> int:
 
 def _positive(kind):
     def parse(text):
-        value = kind(text)
-        if value <= 0:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a {'whole ' if kind is int else ''}number, got {text!r}") from None
+        if not value > 0:
             raise argparse.ArgumentTypeError(f"must be positive, got {text}")
         return value
 
     return parse
 
 
+def _link_url(text):
+    from auxgps.errors import LinkError
+    from auxgps.io.link import parse_link_url
+
+    try:
+        parse_link_url(text)
+    except LinkError as err:
+        raise argparse.ArgumentTypeError(str(err).removeprefix(f"--connect {text!r}: ")) from None
+    return text
+
+
+def _counts(text):
+    """Comma-separated positive whole numbers (landmark counts)."""
+    try:
+        values = tuple(int(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected whole numbers separated by commas, such as 10000,100000; got {text!r}") from None
+    if any(v <= 0 for v in values):
+        raise argparse.ArgumentTypeError(f"every count must be positive, got {text!r}")
+    return values
+
+
 def _non_negative(kind):
     def parse(text):
-        value = kind(text)
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a {'whole ' if kind is int else ''}number, got {text!r}") from None
         if not value >= 0:
             raise argparse.ArgumentTypeError(f"must be zero or more, got {text}")
         return value
@@ -313,8 +343,15 @@ def _non_negative(kind):
     return parse
 
 
+class _Parser(argparse.ArgumentParser):
+    """A usage mistake is one line naming the argument, and exit code 2 (argparse would print the usage too)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="auxgps", description="A visual back-up GPS for drones.")
+    parser = _Parser(prog="auxgps", description="A visual back-up GPS for drones.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     def add_eval_options(p):
@@ -335,7 +372,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_eval)
 
     p = sub.add_parser("run", help="the companion process: MAVLink to ArduPilot, camera in, GPS_INPUT out as GPS2")
-    p.add_argument("--connect", required=True, help="pymavlink URL: tcp:127.0.0.1:5762, udpin:0.0.0.0:14550, /dev/ttyAMA0,921600")
+    p.add_argument("--connect", required=True, type=_link_url,
+                   help="the autopilot: tcp:127.0.0.1:5762, udpin:0.0.0.0:14550, or a serial device and baud rate, /dev/ttyAMA0,921600")
+    p.add_argument("--connect-timeout", type=_positive(float), default=15.0,
+                   help="at start, give up after this many seconds without a connection (default 15)")
     p.add_argument("--camera", required=True, help="sim:WORLD.yaml (rendered at the simulator's truth), a video file, or a device index")
     p.add_argument("--config", help="pipeline config YAML")
     p.add_argument("--map", help="load this map file at start (it must exist and be readable)")
@@ -366,7 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=_positive(float), default=2.0, help="frames per second of the positioning flight (default 2)")
     p.add_argument("--mapping-fps", type=_positive(float), default=1.0, help="frames per second of the mapping survey (default 1)")
     p.add_argument("--seed", type=int, default=1, help="seed of the world, flights and padding (default 1)")
-    p.add_argument("--map-sizes", help="landmark counts to pad the map to, comma-separated (default 10000,100000,1000000)")
+    p.add_argument("--map-sizes", type=_counts, help="landmark counts to pad the map to, comma-separated (default 10000,100000,1000000)")
     p.add_argument("--reported-map", type=_positive(int), help="the map size of the headline positioning figures (default: the second size)")
     p.add_argument("--tiny", action="store_true", help="a survey of a few metres and small maps: a smoke test of seconds")
     p.add_argument("--no-baseline", action="store_true", help="do not run the thesis' method beside")
@@ -378,7 +418,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--only", action="append", help="only photos whose file name matches this glob (repeatable, or comma-separated)")
         p.add_argument("--camera", help="camera file (config/cameras/*.yaml); default: from EXIF, refined by map building")
         p.add_argument("--config", help="photo workflow settings YAML (default: built-in defaults)")
-        p.add_argument("--max-side", type=int, help="reduce photos to this longer side, px, for features (0: full resolution)")
+        p.add_argument("--max-side", type=_non_negative(int), help="reduce photos to this longer side, px, for features (0: full resolution)")
         p.add_argument("--quiet", action="store_true", help="no progress lines")
 
     p = sub.add_parser("map", help="landmark maps from photos")
@@ -413,6 +453,26 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("auxgps: interrupted", file=sys.stderr)
         return 130
+    except Exception as err:  # noqa: BLE001 - anything else is a bug: say so, keep the traceback, exit 3
+        return _report_bug(err)
+
+
+EXIT_BUG = 3
+
+
+def _report_bug(err: Exception) -> int:
+    import tempfile
+    import time
+    import traceback
+
+    path = Path(tempfile.gettempdir()) / f"auxgps-crash-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.log"
+    try:
+        path.write_text(f"auxgps {sys.argv[1:]}\n" + "".join(traceback.format_exception(err)))
+        where = f"the traceback is in {path}"
+    except OSError:
+        where = "the traceback could not be written"
+    print(f"auxgps: internal error, a bug in auxgps ({type(err).__name__}: {err}); {where}; please report it", file=sys.stderr)
+    return EXIT_BUG
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 
 from auxgps.config import PipelineConfig
 from auxgps.core.estimator import Estimator, EstimatorOptions, FrameResult
+from auxgps.errors import LinkError
 from auxgps.io.camera import open_camera
 from auxgps.io.flight_log import FlightLog
 from auxgps.io.link import Decoder, MavLink, Truth
@@ -37,6 +38,7 @@ class RunOptions:
     gps_delay_s: float = 0.1  # GPS_INPUT describes the vehicle this long ago: the autopilot's GPS2_DELAY_MS
     gps1_lag_s: float = 0.1  # a GPS1 reading describes the vehicle this long before its fix time (SITL: SIM_GPS1_LAG_MS)
     record_dir: str | None = None  # record what the estimator sees here (auxgps.io.recording)
+    connect_timeout_s: float = 15.0  # at start, how long the autopilot may take to be there
 
 
 class Companion:
@@ -125,12 +127,15 @@ class Companion:
         return res
 
     def run(self) -> int:
+        self.link.open(self.opts.connect_timeout_s)  # LinkError: one clear line from the CLI
         self.link.start()
         timer = threading.Thread(target=self._gps_input_loop, daemon=True, name="gps-input")
         timer.start()
         t_end = None if self.opts.duration_s is None else time.monotonic() + self.opts.duration_s
         try:
             while not self._stop.is_set() and (t_end is None or time.monotonic() < t_end):
+                if self.link.failure is not None:
+                    raise LinkError(f"the link's reader stopped: {type(self.link.failure).__name__}: {self.link.failure}")
                 frame = self.camera.read()
                 if frame is None:
                     time.sleep(0.005)

@@ -30,3 +30,12 @@ class PhotoError(AuxGpsError):
 
 class PhotoMapError(AuxGpsError):
     """A landmark map cannot be built from the photos given (too few geotagged, overlapping photos)."""
+
+
+class LinkError(AuxGpsError):
+    """The link to the autopilot cannot be opened (bad address, missing device, no permission, refused), or its
+    reader stopped."""
+
+
+class RecordingError(AuxGpsError):
+    """A recording that cannot be read at all (a problem inside one is a line, not an error)."""

@@ -218,3 +218,92 @@ def test_link_ignores_garbage_and_other_systems():
     assert len(got) == 2 and got[0] is None  # the autopilot's HEARTBEAT, which decodes to no record
     got = got[1:]
     assert len(got) == 1 and isinstance(got[0], Attitude) and np.allclose(got[0].euler_rad, [0.1, 0.2, 0.3], atol=1e-6)
+
+
+class SerialBridge:
+    """A pseudo-terminal pair whose master end is bridged to the emulator's TCP port: the slave end is a serial line
+    (auxgps opens it with a baud rate, as a flight controller's UART), the bytes cross unchanged."""
+
+    def __init__(self, port: int) -> None:
+        import os
+        import pty
+        import threading
+        import tty
+
+        self.master, slave = pty.openpty()
+        tty.setraw(slave)
+        self.path = os.ttyname(slave)
+        self._slave = slave
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+        self.sock.setblocking(False)
+        self.bytes_up = self.bytes_down = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._pump, daemon=True)
+        self._thread.start()
+
+    def _pump(self) -> None:
+        import os
+        import select
+
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.master, self.sock], [], [], 0.1)
+            try:
+                if self.master in ready:
+                    data = os.read(self.master, 65536)
+                    self.sock.sendall(data)
+                    self.bytes_up += len(data)
+                if self.sock in ready:
+                    data = self.sock.recv(65536)
+                    if not data:
+                        return
+                    os.write(self.master, data)
+                    self.bytes_down += len(data)
+            except (BlockingIOError, InterruptedError):
+                continue
+            except OSError:
+                return
+
+    def close(self) -> None:
+        import os
+
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self.sock.close()
+        for fd in (self.master, self._slave):
+            os.close(fd)
+
+
+@pytest.mark.slow
+def test_a_flight_over_a_serial_line(tmp_path):
+    """`auxgps run --connect /dev/pts/N,921600`: the emulator's autopilot on the far end of a serial line flies its
+    survey, loses GPS1 and comes home on GPS2, which stays healthy by ArduPilot's rule."""
+    import time
+
+    port = free_port()
+    emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "4", "--fail-gps1-at", "20", "--max-seconds", "120")
+    bridge = run = None
+    try:
+        deadline = time.monotonic() + 20
+        while bridge is None:
+            try:
+                bridge = SerialBridge(port)
+            except OSError:
+                assert time.monotonic() < deadline, "the emulator did not listen"
+                time.sleep(0.2)
+        run = subprocess.Popen(
+            [sys.executable, "-m", "auxgps.cli", "run", "--connect", f"{bridge.path},921600", "--camera", f"sim:{WORLD}",
+             "--log-dir", str(tmp_path / "run"), "--duration", "140"],
+            stdout=subprocess.DEVNULL, stderr=open(tmp_path / "run.log", "w"), cwd=REPO,
+        )
+        emu.wait(timeout=170)
+    finally:
+        stop(emu, run)
+        if bridge is not None:
+            bridge.close()
+    log = json.loads((tmp_path / "emu.json").read_text())
+    assert log["exit_reason"] == "landed", (tmp_path / "run.log").read_text()[-2000:]
+    stats = log["gps_input"]
+    assert stats["mean_interval_ms"] <= 215 and stats["consecutive_gaps_over_245ms"] < 2
+    assert log["landing_error_m"] <= 1.0
+    assert bridge.bytes_up > 10_000 and bridge.bytes_down > 100_000  # GPS_INPUT up, telemetry down, on the line
+    assert "Traceback" not in (tmp_path / "run.log").read_text()

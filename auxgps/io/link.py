@@ -22,6 +22,7 @@ from pymavlink import mavutil  # noqa: E402
 
 from auxgps.core.events import Attitude, Gps1, Imu, Position  # noqa: E402  (re-exported: the link's records)
 from auxgps.core.gps_output import GpsOutput  # noqa: E402
+from auxgps.errors import LinkError  # noqa: E402
 
 log = logging.getLogger(__name__)
 mav = mavutil.mavlink
@@ -128,17 +129,62 @@ class Decoder:
             return None
 
 
-class MavLink:
-    """A MAVLink connection (pymavlink URL: ``tcp:HOST:PORT``, ``udpin:HOST:PORT``, ``/dev/ttyX,57600``).
+@dataclass(frozen=True)
+class LinkAddress:
+    """Where the autopilot is: ``kind`` "tcp" (we connect), "tcpin", "udpin", "udpout" or "udp" with ``host`` and
+    ``port``, or "serial" with ``device`` and ``baud``. ``url`` is what pymavlink opens."""
 
-    A reader thread hands every message from the autopilot (the first system whose HEARTBEAT says ArduPilot) to
-    ``on_message(msg, arrival_s)``, arrival on the monotonic clock rounded to the microsecond (what a tlog keeps);
-    when the link is silent for ``timeout_s`` or fails, it reconnects.
+    kind: str
+    url: str
+    host: str = ""
+    port: int = 0
+    device: str = ""
+    baud: int = 0
+
+
+DEFAULT_BAUD = 57600  # ArduPilot's SERIALn_BAUD default for a telemetry port
+_NET_KINDS = ("tcp", "tcpin", "udpin", "udpout", "udp")
+
+
+def parse_link_url(url: str) -> LinkAddress:
+    """``tcp:HOST:PORT``, ``tcpin:``, ``udpin:``, ``udpout:``, ``udp:`` likewise, or a serial device with an optional
+    baud rate (``/dev/ttyAMA0,921600``, ``COM3,57600``). A malformed address is a :class:`LinkError` naming what is
+    wrong."""
+    url = url.strip()
+    kind, sep, rest = url.partition(":")
+    if sep and kind in _NET_KINDS:
+        host, sep, port_text = rest.rpartition(":")
+        if not sep or not host:
+            raise LinkError(f"--connect {url!r}: expected {kind}:HOST:PORT")
+        if not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
+            raise LinkError(f"--connect {url!r}: port {port_text!r} is not a number from 1 to 65535")
+        return LinkAddress(kind, url, host=host, port=int(port_text))
+    if url.startswith("/") or url.upper().startswith("COM"):
+        device, sep, baud_text = url.partition(",")
+        if sep and (not baud_text.isdigit() or int(baud_text) <= 0):
+            raise LinkError(f"--connect {url!r}: baud rate {baud_text!r} is not a positive whole number")
+        baud = int(baud_text) if sep else DEFAULT_BAUD
+        return LinkAddress("serial", f"{device},{baud}", device=device, baud=baud)
+    raise LinkError(f"--connect {url!r}: not an address auxgps knows: tcp:HOST:PORT, udpin:HOST:PORT, udpout:HOST:PORT, "
+                    "or a serial device such as /dev/ttyAMA0,921600")
+
+
+class MavLink:
+    """A MAVLink connection (see :func:`parse_link_url` for the addresses).
+
+    :meth:`open` makes the first connection in the caller's thread, so that a bad address, a missing device, no
+    permission or a refused connection is a :class:`LinkError` at start. A reader thread then hands every message
+    from the autopilot (the first system whose HEARTBEAT says ArduPilot) to ``on_message(msg, arrival_s)``, arrival
+    on the monotonic clock rounded to the microsecond (what a tlog keeps). When the link fails (a device unplugged,
+    TCP closed) or no HEARTBEAT comes from the autopilot for ``timeout_s``, it is logged and reconnected with
+    back-off, and its return is logged. Bytes that are not MAVLink are counted (``n_bad_data``) and skipped. If
+    the reader itself dies, ``failure`` holds why, and the companion stops.
     """
 
     def __init__(self, url: str, on_message: Callable[[object, float], None], *, sim: bool = False, timeout_s: float = 3.0,
                  source_system: int = 1, source_component: int = mav.MAV_COMP_ID_ONBOARD_COMPUTER) -> None:
-        self.url = url
+        self.address = parse_link_url(url)
+        self.url = self.address.url
         self.on_message = on_message
         self.sim = sim
         self.timeout_s = timeout_s
@@ -146,12 +192,34 @@ class MavLink:
         self.target_system: int | None = None
         self.connected = threading.Event()
         self.reconnects = 0
+        self.n_bad_data = 0
+        self.failure: BaseException | None = None
+        self._lost_at: float | None = None
+        self._last_heartbeat = 0.0
         self._conn = None
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
 
     # -- lifecycle ------------------------------------------------------------------------------------------
+
+    def open(self, timeout_s: float = 15.0) -> None:
+        """Connect now, trying for up to ``timeout_s`` while the other end is not there yet (refused, or a device
+        not yet present); a :class:`LinkError` naming the reason after that, or at once for no permission."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            err = self._try_open()
+            if err is None:
+                return
+            if isinstance(err, PermissionError):
+                raise LinkError(f"--connect {self.url}: permission denied ({err.strerror or err}); on Linux add the user to "
+                                "the dialout group, or run as a user that may open it")
+            if time.monotonic() >= deadline:
+                if self.address.kind == "serial" and not os.path.exists(self.address.device):
+                    raise LinkError(f"--connect {self.url}: no such device {self.address.device}")
+                reason = "connection refused" if isinstance(err, ConnectionRefusedError) else f"{type(err).__name__}: {err}"
+                raise LinkError(f"--connect {self.url}: cannot connect for {timeout_s:g} s ({reason})")
+            time.sleep(0.2)
 
     def start(self) -> None:
         for target in (self._read_loop, self._heartbeat_loop):
@@ -165,16 +233,32 @@ class MavLink:
         for th in self._threads:
             th.join(timeout=2.0)
 
-    def _open(self) -> bool:
+    def _try_open(self) -> BaseException | None:
+        """Open the connection; None on success, else the error (the connection stays closed)."""
+        import serial  # pyserial, which pymavlink opens serial devices with
+
+        kwargs = dict(source_system=self.source_system, source_component=self.source_component, autoreconnect=False)
+        if self.address.kind == "tcp":
+            kwargs["retries"] = 0  # one attempt: the back-off is ours
         try:
-            self._conn = mavutil.mavlink_connection(
-                self.url, source_system=self.source_system, source_component=self.source_component, autoreconnect=False
-            )
-        except OSError as err:
-            log.info("link %s not available (%s); retrying", self.url, err)
+            self._conn = mavutil.mavlink_connection(self.url, **kwargs)
+        except (OSError, serial.SerialException) as err:
             self._conn = None
-            return False
+            cause = err
+            if isinstance(err, serial.SerialException) and isinstance(err.__context__, OSError):
+                cause = err.__context__
+            if isinstance(cause, OSError) and cause.errno == 13:
+                return PermissionError(cause.errno, cause.strerror)
+            return cause
         self.target_system = None
+        self._last_heartbeat = time.monotonic()
+        return None
+
+    def _open(self) -> bool:
+        err = self._try_open()
+        if err is not None:
+            log.info("link %s not available (%s); retrying", self.url, err)
+            return False
         return True
 
     def _close(self) -> None:
@@ -189,6 +273,18 @@ class MavLink:
     # -- reading --------------------------------------------------------------------------------------------
 
     def _read_loop(self) -> None:
+        try:
+            self._read_until_stopped()
+        except BaseException as err:  # noqa: BLE001 - a reader that dies must say so, not leave the process deaf
+            self.failure = err
+            log.exception("the link's reader stopped")
+
+    def _lost(self, why: str) -> None:
+        log.warning("link %s %s; reconnecting", self.url, why)
+        if self._lost_at is None:
+            self._lost_at = time.monotonic()
+
+    def _read_until_stopped(self) -> None:
         backoff = 0.2
         while not self._stop.is_set():
             if self._conn is None:
@@ -197,20 +293,18 @@ class MavLink:
                     backoff = min(backoff * 2, 2.0)
                     continue
                 backoff = 0.2
-            last_rx = time.monotonic()
             while not self._stop.is_set() and self._conn is not None:
                 try:
                     msg = self._conn.recv_match(blocking=True, timeout=0.2)
                 except (OSError, ConnectionError) as err:
-                    log.warning("link %s failed: %s; reconnecting", self.url, err)
+                    self._lost(f"failed: {err}")
                     break
                 now = round(time.monotonic() * 1e6) / 1e6
+                if now - self._last_heartbeat > self.timeout_s:
+                    self._lost(f"without a HEARTBEAT from the autopilot for {now - self._last_heartbeat:.1f} s")
+                    break
                 if msg is None:
-                    if now - last_rx > self.timeout_s:
-                        log.warning("link %s silent for %.1f s; reconnecting", self.url, now - last_rx)
-                        break
                     continue
-                last_rx = now
                 try:
                     self._handle(msg, now)
                 except Exception:  # noqa: BLE001 - one bad message or handler bug must not end the link
@@ -222,6 +316,9 @@ class MavLink:
     def _handle(self, msg, now: float) -> None:
         kind = msg.get_type()
         if kind == "BAD_DATA":
+            self.n_bad_data += 1
+            if self.n_bad_data in (1, 10, 100) or self.n_bad_data % 1000 == 0:
+                log.info("link %s: %d stretches of bytes that are not MAVLink skipped so far", self.url, self.n_bad_data)
             return
         src = msg.get_srcSystem()
         if kind == "HEARTBEAT" and self.target_system is None and msg.autopilot == mav.MAV_AUTOPILOT_ARDUPILOTMEGA:
@@ -229,8 +326,13 @@ class MavLink:
             self.connected.set()
             self.request_streams()
             log.info("autopilot is system %d on %s", src, self.url)
+            if self._lost_at is not None:
+                log.warning("link %s back after %.1f s", self.url, now - self._lost_at)
+                self._lost_at = None
         if src != self.target_system:
             return  # another system on the link
+        if kind == "HEARTBEAT":
+            self._last_heartbeat = now
         self.on_message(msg, now)
 
     # -- writing --------------------------------------------------------------------------------------------

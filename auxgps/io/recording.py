@@ -37,16 +37,12 @@ import cv2
 import numpy as np
 
 from auxgps.core.events import Frame
-from auxgps.errors import AuxGpsError
+from auxgps.errors import RecordingError
 
 log = logging.getLogger(__name__)
 
 FORMAT = "auxgps-recording"
 VERSION = 1
-
-
-class RecordingError(AuxGpsError):
-    """A recording that cannot be read at all (a problem inside one is a line, not an error)."""
 
 
 class Recorder:

@@ -1,0 +1,65 @@
+"""A user's mistake is one line naming what is wrong and exit code 2 (usage) or 1 (runtime); a bug is exit 3 with
+the traceback kept in a file. Never a traceback on the screen."""
+
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+WORLD = str(REPO / "config" / "worlds" / "one_cube_1m.yaml")
+
+
+def auxgps(*args: str, timeout_s: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "auxgps.cli", *args], cwd=REPO, capture_output=True, text=True, timeout=timeout_s)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize(
+    "args, code, names",
+    [
+        (["map", "build", "--images", ".", "--out", "x.npz", "--max-side", "-5"], 2, "--max-side"),
+        (["bench", "--map-sizes", "10k"], 2, "--map-sizes"),
+        (["run", "--connect", "tcp:host:abc", "--camera", "0"], 2, "port 'abc'"),
+        (["run", "--connect", "serial0", "--camera", "0"], 2, "--connect"),
+        (["run", "--connect", "/dev/ttyAMA0,fast", "--camera", "0"], 2, "baud rate"),
+        (["eval", "--world", WORLD, "--altitude", "ten"], 2, "--altitude"),
+        (["replay", "/no/such/recording"], 1, "not a recording"),
+        (["run", "--connect", "/dev/ttyNOPE0,921600", "--camera", f"sim:{WORLD}", "--connect-timeout", "0.5", "--log-dir", "/tmp/auxgps-test-nodev"], 1, "no such device /dev/ttyNOPE0"),
+    ],
+)
+def test_a_mistake_is_one_line_and_an_exit_code(args, code, names):
+    proc = auxgps(*args)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == code, proc.stderr
+    assert len(lines) == 1 and names in lines[0] and "Traceback" not in proc.stderr, proc.stderr
+
+
+def test_a_refused_connection_at_start_is_one_line_and_exit_1(tmp_path):
+    port = free_port()  # nothing listens there
+    proc = auxgps("run", "--connect", f"tcp:127.0.0.1:{port}", "--camera", f"sim:{WORLD}", "--connect-timeout", "1",
+                  "--log-dir", str(tmp_path))
+    errors = [line for line in proc.stderr.splitlines() if "error" in line]
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert len(errors) == 1 and "connection refused" in errors[0] and f"127.0.0.1:{port}" in errors[0]
+
+
+def test_a_bug_says_so_keeps_the_traceback_and_exits_3(monkeypatch, capsys):
+    import auxgps.cli as cli
+
+    def broken(args):
+        raise ZeroDivisionError("a deliberate bug")
+
+    monkeypatch.setattr(cli, "_eval", broken)
+    assert cli.main(["eval", "--world", WORLD, "--altitude", "15"]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "a bug in auxgps" in err[0] and "ZeroDivisionError" in err[0]
+    log = Path(err[0].split("the traceback is in ")[1].split(";")[0])
+    assert "ZeroDivisionError: a deliberate bug" in log.read_text()
