@@ -105,3 +105,14 @@ def test_a_flight_maps_while_gps1_is_good_then_positions_on_its_map(flight):
     first_positioning = next(o.t_s for o in outputs if o.decision.mode == Mode.POSITIONING)
     assert 14.0 <= first_positioning <= 14.0 + est.options.gps1_lag_s + 0.25  # at GPS1's first no-fix report
     assert isinstance(said[0], (type(None), str)) and isinstance(frames[0][1], FrameResult)
+
+
+def test_the_attitude_of_a_frame_is_the_nearest_sample_even_out_of_order():
+    from auxgps.core.events import Attitude
+
+    est = Estimator(PipelineConfig())
+    for t in (0.0, 0.25, 0.5, 0.375, 0.75):  # 0.375 arrives late (times exact in binary: the ties are ties)
+        est.feed(Attitude(t, np.array([t, 0.0, 0.0])))
+    assert [a.t_s for a in est._attitudes] == [0.0, 0.25, 0.375, 0.5, 0.75]
+    for t, nearest in ((0.38, 0.375), (0.4375, 0.375), (0.44, 0.5), (-1.0, 0.0), (9.0, 0.75), (0.125, 0.0)):
+        assert est._attitude_at(t)[0] == nearest  # a tie (0.125, 0.4375) takes the earlier sample

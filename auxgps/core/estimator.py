@@ -21,6 +21,7 @@ fix); the autopilot reports heights above home, and the two differ by home's hei
 
 from __future__ import annotations
 
+import bisect
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -150,7 +151,13 @@ class Estimator:
         if isinstance(event, Imu):
             self._on_imu(event)
         elif isinstance(event, Attitude):
-            self._attitudes.append(event)
+            atts = self._attitudes
+            if atts and event.t_s < atts[-1].t_s:  # out of time order (a clock step): kept in order
+                if len(atts) == atts.maxlen:
+                    atts.popleft()
+                atts.insert(bisect.bisect_right(atts, event.t_s, key=lambda a: a.t_s), event)
+            else:
+                atts.append(event)
         elif isinstance(event, Position):
             self._on_position(event)
         elif isinstance(event, Gps1):
@@ -207,9 +214,12 @@ class Estimator:
         return note
 
     def _attitude_at(self, t_s: float) -> np.ndarray:
-        """The attitude sample nearest to ``t_s``."""
-        best = min(self._attitudes, key=lambda a: abs(a.t_s - t_s))
-        return best.euler_rad
+        """The attitude sample nearest to ``t_s`` (the earlier of two as near). Samples arrive in time order."""
+        atts = self._attitudes
+        k = bisect.bisect_left(atts, t_s, key=lambda a: a.t_s)
+        if k == len(atts) or (k > 0 and t_s - atts[k - 1].t_s <= atts[k].t_s - t_s):
+            k -= 1
+        return atts[k].euler_rad
 
     # -- frames --------------------------------------------------------------------------------------------
 
