@@ -16,7 +16,7 @@ import numpy as np
 from tabulate import tabulate
 
 from auxgps.config import load_pipeline_config
-from auxgps.errors import AuxGpsError
+from auxgps.errors import AuxGpsError, ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 DEMO_WORLD = CONFIG_DIR / "worlds" / "cubes4_0.5m_different.yaml"
@@ -229,6 +229,60 @@ def _load_baseline(pipeline):
     return module.make_baseline(camera_from_config(pipeline.camera))
 
 
+def _camera_calibrate(args) -> int:
+    import numpy as np
+    import yaml
+
+    from auxgps.core.calibration import calibrate, find_board
+    from auxgps.io.camera import calibration_images
+
+    cols, rows = args.board
+    views, size, n_seen, last = [], None, 0, None
+    for name, gray in calibration_images(video=args.video, images=args.images):
+        n_seen += 1
+        if size is None:
+            size = gray.shape[::-1]
+        elif gray.shape[::-1] != size:
+            raise ConfigError(f"{name}: {gray.shape[1]}x{gray.shape[0]} px, where the first view was {size[0]}x{size[1]}")
+        corners = find_board(gray, cols, rows)
+        if corners is None:
+            continue
+        if last is not None and np.mean(np.linalg.norm(corners - last, axis=1)) < args.min_move_px:
+            continue  # the board has hardly moved since the last view kept: nothing new
+        views.append(corners)
+        last = corners
+        if len(views) >= args.max_views:
+            break
+    print(f"auxgps camera calibrate: the {cols}x{rows} board found in {len(views)} of {n_seen} views")
+    cal = calibrate(views, *(size or (0, 0)), cols, rows, args.square_mm / 1000.0, free_k3=args.k3)
+    worst = int(np.argmax(cal.per_view_rms_px))
+    print(f"reprojection RMS {cal.rms_px:.3f} px (worst view {cal.per_view_rms_px[worst]:.3f} px); focal {cal.K[0, 0]:.1f} x {cal.K[1, 1]:.1f} px, "
+          f"centre {cal.K[0, 2]:.1f}, {cal.K[1, 2]:.1f} px; k1 {cal.dist[0]:+.4f} k2 {cal.dist[1]:+.4f} p1 {cal.dist[2]:+.5f} "
+          f"p2 {cal.dist[3]:+.5f} k3 {cal.dist[4]:+.4f}")
+    if cal.rejected:
+        print(f"  {len(cal.rejected)} view(s) fitted much worse than the rest and were left out")
+    if cal.rms_px > 1.0:
+        print("  note: over 1 px is a poor calibration (a blurred or bent board, or views too alike); take new views")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    head = (f"# auxgps camera calibrate: {cal.n_views} views of a {cols}x{rows} board, {args.square_mm:g} mm squares; "
+            f"reprojection RMS {cal.rms_px:.3f} px.\n# Use it as a pipeline configuration (--config) or paste its camera: section "
+            "into yours. The mount (camera: body to camera) is the mount: section, which this file does not set.\n")
+    out.write_text(head + yaml.safe_dump({"camera": cal.camera_section()}, sort_keys=False, default_flow_style=None))
+    print(f"wrote {out}")
+    return 0
+
+
+def _board(text):
+    try:
+        cols, rows = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected COLSxROWS, the board's inner corners, such as 9x6; got {text!r}") from None
+    if cols < 3 or rows < 3:
+        raise argparse.ArgumentTypeError(f"a board needs at least 3x3 inner corners, got {text!r}")
+    return cols, rows
+
+
 def _photo_settings(args):
     from auxgps.config import load_photo_camera, load_photo_config
 
@@ -434,6 +488,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="write per-photo results and a summary as JSON to this file")
     p.add_argument("--ignore-metadata", action="store_true", help="use no attitude or height metadata of the photos")
     p.set_defaults(func=_locate)
+
+    p = sub.add_parser("camera", help="the camera: calibration")
+    cam_sub = p.add_subparsers(dest="camera_command", required=True)
+    p = cam_sub.add_parser("calibrate", help="intrinsics and distortion from views of a chessboard; writes the camera file")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--video", help="a video of the board moved about in front of the camera (one view per 0.5 s)")
+    src.add_argument("--images", help="a folder of images of the board")
+    p.add_argument("--board", type=_board, required=True, metavar="COLSxROWS", help="the board's inner corners, such as 9x6")
+    p.add_argument("--square-mm", type=_positive(float), required=True, help="the side of one square, mm")
+    p.add_argument("--out", required=True, metavar="CAMERA.yaml", help="the camera file to write")
+    p.add_argument("--max-views", type=_positive(int), default=40, help="use at most this many views (default 40)")
+    p.add_argument("--k3", action="store_true", help="fit the third radial term too (fish-eye-like lenses only)")
+    p.add_argument("--min-move-px", type=_non_negative(float), default=20.0,
+                   help="skip a view whose corners moved less than this since the last one kept, px (default 20)")
+    p.set_defaults(func=_camera_calibrate)
 
     p = sub.add_parser("demo", help="closed loop: the vehicle emulator and auxgps run, GPS1 failing mid-survey")
     p.add_argument("--out-dir", default="out/demo", help="logs, report.png and report.json go here")

@@ -94,3 +94,41 @@ def open_camera(spec: str, camera: PinholeCamera, R_body_cam: np.ndarray, truth:
     if not Path(spec).exists():
         raise ConfigError(f"camera {spec!r}: no such file, and not sim:WORLD.yaml or a device index")
     return CaptureCamera(spec)
+
+
+def calibration_images(*, video: str | None = None, images: str | None = None, every_s: float = 0.5):
+    """Grey images (H, W) uint8 to calibrate from: one every ``every_s`` seconds of a video, or every image of a
+    folder (sorted by name). An unreadable file is logged and skipped; a missing source is a :class:`ConfigError`."""
+    if (video is None) == (images is None):
+        raise ConfigError("camera calibrate: give --video FILE or --images DIR")
+    if images is not None:
+        folder = Path(images)
+        if not folder.is_dir():
+            raise ConfigError(f"--images {images}: not a folder")
+        files = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"))
+        if not files:
+            raise ConfigError(f"--images {images}: no images (PNG, JPEG, BMP, TIFF) in it")
+        for path in files:
+            gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            if gray is None:
+                log.warning("%s: not readable as an image; skipped", path)
+                continue
+            yield path.name, gray
+        return
+    if not Path(video).exists():
+        raise ConfigError(f"--video {video}: no such file")
+    cap = cv2.VideoCapture(video)
+    if not cap.isOpened():
+        raise ConfigError(f"--video {video}: cannot be opened as a video")
+    step = max(1, int(round((cap.get(cv2.CAP_PROP_FPS) or 30.0) * every_s)))
+    k = 0
+    try:
+        while True:
+            ok, image = cap.read()
+            if not ok:
+                return
+            if k % step == 0 and image is not None and image.ndim == 3:
+                yield f"frame {k}", cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+            k += 1
+    finally:
+        cap.release()
