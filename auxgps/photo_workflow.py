@@ -1,6 +1,6 @@
 """The photo workflow: build a map from a folder of geotagged photos; locate photos against it.
 
-This module joins the edges (photo files, map files) to the pure core (:mod:`auxgps.core.photo_map`). Every
+This module joins the edges (photo files, map files) to the pure core (:mod:`auxgps.photo`). Every
 problem with one photo (unreadable, truncated, no GPS where GPS is needed, no intrinsics, not located) becomes
 a message for that file; only a problem with the whole job (no map can be built, no photos at all) raises.
 """
@@ -17,18 +17,12 @@ import numpy as np
 from auxgps.config import PhotoCameraConfig, PhotoConfig
 from auxgps.core.camera import PinholeCamera
 from auxgps.core.geometry import LocalFrame
-from auxgps.core.photo_map import (
-    MapPhoto,
-    PhotoFix,
-    PhotoLocator,
-    PhotoMap,
-    PhotoPrior,
-    R_ned_cam_from_gimbal,
-    build_photo_map,
-    detect_sift,
-)
 from auxgps.errors import PhotoError
 from auxgps.io.photos import PhotoMeta, load_gray, read_photo_meta
+from auxgps.photo.build import build_photo_map
+from auxgps.photo.features import detect_sift
+from auxgps.photo.locate import PhotoLocator
+from auxgps.photo.types import MapPhoto, PhotoFix, PhotoMap, PhotoPrior, R_ned_cam_from_gimbal
 
 #: The diagonal of a 35 mm film frame, mm: EXIF's 35 mm-equivalent focal length is scaled to it.
 _FILM_DIAGONAL_MM = math.hypot(36.0, 24.0)

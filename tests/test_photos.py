@@ -17,10 +17,10 @@ from PIL import Image
 
 from auxgps.cli import main
 from auxgps.config import load_photo_camera
-from auxgps.core.photo_map import R_ned_cam_from_gimbal, R_ned_cam_nadir, camera_heading_rad
 from auxgps.errors import MapError, PhotoError
 from auxgps.io.map_file import load_map, load_photo_map
 from auxgps.io.photos import OPTIONAL_FIELDS, list_photos, load_gray, read_photo_meta
+from auxgps.photo.types import R_ned_cam_from_gimbal, R_ned_cam_nadir, camera_heading_rad
 from auxgps.photo_workflow import camera_for_photo
 
 REPO = Path(__file__).resolve().parent.parent

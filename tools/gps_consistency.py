@@ -4,7 +4,7 @@
         [--gps-sigma-m 100] [--hold-out PASS [--hold-out-bare]] [--json OUT]
 
 1. One photogrammetric block of ALL the given photos, built by the map builder
-   (:func:`auxgps.core.photo_map.build_photo_map`) with the GPS prior made so loose (``--gps-sigma-m``, default
+   (:func:`auxgps.photo.build.build_photo_map`) with the GPS prior made so loose (``--gps-sigma-m``, default
    100 m) that the GPS cannot bend the block: its shape comes from the images (and the heights above take-off).
 2. Its camera positions are then placed on the GPS by a least-squares 2D similarity (north/east translation,
    rotation, scale; equal weights): the photos' GPS fixes where the block lies, nothing more. Per photo the tool
@@ -46,8 +46,9 @@ from pathlib import Path
 import numpy as np
 
 from auxgps.config import load_photo_camera, load_photo_config
-from auxgps.core.photo_map import PhotoPrior, build_photo_map
 from auxgps.io.photos import list_photos
+from auxgps.photo.build import build_photo_map
+from auxgps.photo.types import PhotoPrior
 from auxgps.photo_workflow import read_map_photos
 
 

@@ -42,8 +42,8 @@ import numpy as np
 from auxgps.core.camera import PinholeCamera
 from auxgps.core.geometry import LocalFrame
 from auxgps.core.landmarks import LandmarkMap, pack_sym, unpack_sym
-from auxgps.core.photo_map import PhotoMap, SolvedPhoto
 from auxgps.errors import MapError
+from auxgps.photo.types import PhotoMap, SolvedPhoto
 
 FORMAT = "auxgps-map"
 VERSION = 3
