@@ -273,6 +273,44 @@ def _camera_calibrate(args) -> int:
     return 0
 
 
+def _check(args) -> int:
+    from auxgps import preflight
+
+    wanted = preflight.load_wanted()
+    print(f"auxgps check: {args.connect} against {preflight.PARM_FILE.name}, auxgps's GPS delay {args.gps_delay_ms} ms")
+    ap = preflight.connect(args.connect, args.timeout)
+    findings = check_and_print(preflight, ap, wanted, args)
+    bad = [f for f in findings if not f.ok]
+    fixable = [f for f in bad if f.set_params]
+    if args.fix and fixable:
+        names = ", ".join(n for f in fixable for n in f.set_params)
+        if not args.yes:
+            answer = input(f"write {names} to the autopilot? [y/N] ").strip().lower()
+            if answer not in ("y", "yes"):
+                print("nothing written")
+                return 1
+        for line in preflight.fix(ap, fixable):
+            print(line)
+        if args.reboot:
+            preflight.reboot(ap)
+            print("reboot asked for; run auxgps check again once the autopilot is back")
+            return 0
+        print("after writing:")
+        findings = check_and_print(preflight, ap, wanted, args)
+        bad = [f for f in findings if not f.ok]
+    print("all green" if not bad else f"{len(bad)} to put right" + ("" if args.fix else " (--fix writes the parameters)"))
+    return 0 if not bad else 1
+
+
+def check_and_print(preflight, ap, wanted, args):
+    from auxgps.core.autopilot_setup import check_setup
+
+    findings = check_setup(preflight.observe(ap, wanted, args.listen), wanted, args.gps_delay_ms)
+    for f in findings:
+        print(f"  {'ok ' if f.ok else 'BAD'}  {f.text}")
+    return findings
+
+
 def _board(text):
     try:
         cols, rows = (int(x) for x in text.lower().split("x"))
@@ -488,6 +526,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="write per-photo results and a summary as JSON to this file")
     p.add_argument("--ignore-metadata", action="store_true", help="use no attitude or height metadata of the photos")
     p.set_defaults(func=_locate)
+
+    p = sub.add_parser("check", help="pre-flight: the autopilot's firmware, parameters, streams and GPS1, for auxgps as GPS2")
+    p.add_argument("--connect", required=True, type=_link_url, help="the autopilot, as for auxgps run")
+    p.add_argument("--gps-delay-ms", type=_delay_ms, default=100, help="auxgps run's --gps-delay-ms (default 100): GPS2_DELAY_MS must equal it")
+    p.add_argument("--fix", action="store_true", help="write the parameter file's values for what is wrong (asks first)")
+    p.add_argument("--yes", action="store_true", help="with --fix: do not ask")
+    p.add_argument("--reboot", action="store_true", help="with --fix: reboot the autopilot after writing")
+    p.add_argument("--timeout", type=_positive(float), default=15.0, help="seconds to wait for the autopilot (default 15)")
+    p.add_argument("--listen", type=_positive(float), default=3.0, help="seconds to measure the streams over (default 3)")
+    p.set_defaults(func=_check)
 
     p = sub.add_parser("camera", help="the camera: calibration")
     cam_sub = p.add_subparsers(dest="camera_command", required=True)

@@ -85,3 +85,65 @@ def test_lag_correlation_known_answers():
     assert corr["0.1s"] == pytest.approx([0.5, 0.5], abs=0.05) and corr["1s"] == pytest.approx([0.45, 0.45], abs=0.05)
     assert sf.lag_correlation(t, fresh, lags_s=(0.1,))["0.1s"] == pytest.approx([0.0, 0.0], abs=0.05)
     assert sf.lag_correlation(t, fresh, lags_s=(0.05,), tol_s=0.01)["0.05s"] is None
+
+
+def start_sitl(scratch: Path, log: Path) -> subprocess.Popen:
+    """ArduCopter SITL with copter.parm and the project's parameter file, home at the demo world's origin."""
+    from auxgps.sim.world import load_world
+
+    origin = load_world(REPO / "config" / "worlds" / "cubes4_0.5m_different.yaml").frame
+    defaults = f"{Path(SITL).parent / 'copter.parm'},{REPO / 'config' / 'ardupilot' / 'auxgps-gps2.parm'}"
+    return subprocess.Popen([SITL, "--model", "quad", "--speedup", "1", "-I0", "--defaults", defaults,
+                             "--home", f"{origin.lat_deg},{origin.lon_deg},{origin.alt_amsl_m},0"],
+                            cwd=scratch, stdout=open(log, "w"), stderr=subprocess.STDOUT)
+
+
+def check(*args: str) -> subprocess.CompletedProcess:
+    p = subprocess.run([sys.executable, "-m", "auxgps.cli", "check", "--connect", "tcp:127.0.0.1:5760", "--timeout", "30", *args],
+                       cwd=REPO, capture_output=True, text=True, timeout=180)
+    print(p.stdout, p.stderr[-1500:])
+    return p
+
+
+def check_until_green(within_s: float) -> subprocess.CompletedProcess:
+    """SITL takes about 40 s from start until GPS1 and the EKF are ready: check until all green, or time out."""
+    import time
+
+    deadline = time.monotonic() + within_s
+    while True:
+        p = check()
+        if p.returncode == 0 or time.monotonic() > deadline:
+            return p
+        time.sleep(5)
+
+
+@pytest.mark.sitl
+@pytest.mark.skipif(not SITL or not Path(SITL).exists(), reason="set ARDUPILOT_SITL to an ArduCopter SITL binary to fly the real autopilot")
+def test_check_is_green_on_sitl_names_what_is_wrong_and_fixes_it(tmp_path):
+    import os
+
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink import mavutil
+
+    sitl = start_sitl(tmp_path, tmp_path / "sitl.log")
+    try:
+        green = check_until_green(120)
+        assert green.returncode == 0 and "all green" in green.stdout
+        assert "ArduPilot 4." in green.stdout
+        gcs = mavutil.mavlink_connection("tcp:127.0.0.1:5760", source_system=255)
+        gcs.wait_heartbeat(timeout=30)
+        for name, value in ((b"GPS2_TYPE", 0), (b"GPS2_DELAY_MS", 50)):
+            gcs.mav.param_set_send(1, 1, name, value, mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
+            gcs.recv_match(type="PARAM_VALUE", blocking=True, timeout=5)
+        gcs.close()
+        wrong = check()
+        assert wrong.returncode == 1
+        bad = [line for line in wrong.stdout.splitlines() if line.strip().startswith("BAD")]
+        assert any("GPS2_TYPE = 0, want 14" in line for line in bad) and any("GPS2_DELAY_MS = 50, want 100" in line for line in bad)
+        fixed = check("--fix", "--yes", "--reboot")
+        assert fixed.returncode == 0 and "reboot asked for" in fixed.stdout
+        after = check_until_green(120)
+        assert after.returncode == 0 and "all green" in after.stdout
+    finally:
+        sitl.terminate()
+        sitl.wait(timeout=20)

@@ -548,6 +548,7 @@ class VehicleSim:
             "SIM_GPS1_ENABLE": 1, "GPS2_TYPE": options.gps2_type,
             "GPS_AUTO_SWITCH": options.auto_switch, "GPS_PRIMARY": options.gps_primary,
             "GPS2_DELAY_MS": GPS2_DELAY_MS_DEFAULT,
+            "EK3_SRC1_POSXY": 3, "EK3_SRC1_VELXY": 3,  # ArduPilot's defaults: GPS
         }
         self.gps = (GpsInstance(), GpsInstance())
         self.selector = PrimarySelector()
@@ -985,6 +986,7 @@ def open_link(port: int) -> TcpServerLink:
 PARAM_TYPES = {name: MAV.MAV_PARAM_TYPE_INT8 for name in ("SIM_GPS1_ENABLE", "GPS2_TYPE", "GPS_AUTO_SWITCH",
                                                           "GPS_PRIMARY")} | {"GPS2_DELAY_MS": MAV.MAV_PARAM_TYPE_INT16}
 MAX_MESSAGES_PER_POLL = 200
+FIRMWARE_VERSION = (4, 7, 0)  # what AUTOPILOT_VERSION reports: the SITL build beside the project
 MAX_LAG_S = 0.25  # emulated s the loop may run behind the wall clock; beyond, the clock slips (a stalled
 # process would otherwise catch up in a burst and open gaps in the GPS_INPUT it receives)
 SYSTEM_ID = 1
@@ -1004,6 +1006,7 @@ class MavlinkServer:
         self._senders: dict[str, Callable[[], None]] = {
             name: getattr(self, f"_send_{name}") for name in DEFAULT_RATES_HZ
         }
+        self._senders["AUTOPILOT_VERSION"] = self._send_AUTOPILOT_VERSION  # on request only
         self._handlers: dict[str, Callable[[Any], None]] = {
             "GPS_INPUT": self.sim.handle_gps_input,
             "PARAM_SET": self._on_param_set,
@@ -1143,6 +1146,11 @@ class MavlinkServer:
             status = MAV.MAV_STATE_ACTIVE if sim.armed else MAV.MAV_STATE_STANDBY
         self.link.mav.heartbeat_send(MAV.MAV_TYPE_QUADROTOR, MAV.MAV_AUTOPILOT_ARDUPILOTMEGA, base_mode,
                                      int(sim.mode), status)
+
+    def _send_AUTOPILOT_VERSION(self) -> None:
+        major, minor, patch = FIRMWARE_VERSION
+        version = (major << 24) | (minor << 16) | (patch << 8) | 0  # FIRMWARE_VERSION_TYPE_DEV
+        self.link.mav.autopilot_version_send(MAV.MAV_PROTOCOL_CAPABILITY_MAVLINK2, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0)
 
     def _send_SYSTEM_TIME(self) -> None:
         self.link.mav.system_time_send(int((self.unix_t0_s + self.sim.t_s) * 1e6), self._time_boot_ms())
