@@ -15,7 +15,7 @@ demo: $(BIN)/.installed
 	$(BIN)/auxgps demo
 
 test: $(BIN)/.installed
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -m "not packaging"
 
 clean:
 	rm -rf $(VENV) build *.egg-info

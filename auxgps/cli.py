@@ -18,8 +18,7 @@ from tabulate import tabulate
 from auxgps.config import load_pipeline_config
 from auxgps.errors import AuxGpsError, ConfigError
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
-DEMO_WORLD = CONFIG_DIR / "worlds" / "cubes4_0.5m_different.yaml"
+DEMO_WORLD = "cubes4_0.5m_different"
 
 
 def _fmt(x, unit="", digits=3) -> str:
@@ -213,20 +212,11 @@ def _bench(args) -> int:
 
 
 def _load_baseline(pipeline):
-    """The thesis' method from tools/thesis_baseline.py (in the source tree; None when auxgps is installed without it)."""
-    import importlib.util
-
+    """The thesis' method (auxgps.evaluation.thesis_baseline), run beside ours on the benchmark's frames."""
     from auxgps.core.camera import camera_from_config
+    from auxgps.evaluation.thesis_baseline import make_baseline
 
-    path = CONFIG_DIR.parent / "tools" / "thesis_baseline.py"
-    if not path.exists():
-        print(f"auxgps: note: {path} not found, no baseline", file=sys.stderr)
-        return None
-    spec = importlib.util.spec_from_file_location("thesis_baseline", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module.make_baseline(camera_from_config(pipeline.camera))
+    return make_baseline(camera_from_config(pipeline.camera))
 
 
 def _camera_calibrate(args) -> int:
@@ -435,6 +425,15 @@ def _non_negative(kind):
     return parse
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("auxgps")
+    except PackageNotFoundError:
+        return "(not installed)"
+
+
 class _Parser(argparse.ArgumentParser):
     """A usage mistake is one line naming the argument, and exit code 2 (argparse would print the usage too)."""
 
@@ -444,6 +443,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="auxgps", description="A visual back-up GPS for drones.")
+    parser.add_argument("--version", action="version", version=f"auxgps {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     def add_eval_options(p):
@@ -457,7 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--quiet", action="store_true", help="no progress bar")
 
     p = sub.add_parser("eval", help="fly a mapping survey then a positioning flight over a simulated world; score them")
-    p.add_argument("--world", required=True, help="world YAML file (see config/worlds/)")
+    p.add_argument("--world", required=True, help="a world by name (one_cube_1m, cubes4_0.5m_different, ...) or a world YAML file")
     p.add_argument("--altitude", type=_positive(float), required=True, help="survey height above ground, m")
     p.add_argument("--runs", type=_positive(int), default=1, help="seeded runs (default 1)")
     add_eval_options(p)

@@ -2,7 +2,8 @@
 
 The emulator flies the survey on GPS1; GPS1 is disabled part-way; the rest of the survey and the return home
 are flown on auxgps's GPS2. A control run without auxgps shows what happens otherwise. The report is a PNG and a
-JSON of the figures. The emulator is a test stand-in, launched as a script from ``tools/``, never imported here.
+JSON of the figures. The emulator (:mod:`auxgps.sim.emulator`) is a stand-in for the autopilot, started as a
+process of its own, never imported here.
 """
 
 from __future__ import annotations
@@ -19,10 +20,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from auxgps.errors import AuxGpsError
 
-REPO = Path(__file__).resolve().parent.parent
-EMULATOR = REPO / "tools" / "vehicle_emulator.py"
 
 
 def _free_port() -> int:
@@ -32,15 +30,13 @@ def _free_port() -> int:
 
 
 def _emulator(world: str, port: int, log: Path, fail_at_s: float, gps2_type: int, max_s: float) -> subprocess.Popen:
-    cmd = [sys.executable, str(EMULATOR), "--world", world, "--port", str(port), "--fail-gps1-at", str(fail_at_s),
+    cmd = [sys.executable, "-m", "auxgps.sim.emulator", "--world", world, "--port", str(port), "--fail-gps1-at", str(fail_at_s),
            "--gps2-type", str(gps2_type), "--log", str(log), "--max-seconds", str(max_s)]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
 def run_demo(world: str, out_dir: str = "out/demo", fail_at_s: float = 60.0, max_s: float = 480.0) -> dict:
     """Fly the closed loop and the control run at once; return the figures (also written as JSON and PNG)."""
-    if not EMULATOR.exists():
-        raise AuxGpsError(f"the vehicle emulator is not at {EMULATOR}: the demo runs from a checkout of auxgps")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     port, port_ctl = _free_port(), _free_port()

@@ -19,9 +19,10 @@ from pymavlink import mavutil  # noqa: E402
 from auxgps.core.autopilot_setup import NEEDS_REBOOT, STREAMS_HZ, Finding, Observed, param_names, read_parm_file  # noqa: E402
 from auxgps.errors import ConfigError, LinkError  # noqa: E402
 from auxgps.io.link import parse_link_url  # noqa: E402
+from auxgps.resources import parm_file  # noqa: E402
 
 mav = mavutil.mavlink
-PARM_FILE = Path(__file__).resolve().parent.parent / "config" / "ardupilot" / "auxgps-gps2.parm"
+PARM_FILE = parm_file()
 
 
 @dataclass

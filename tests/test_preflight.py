@@ -63,7 +63,7 @@ def check(port, *args):
 @pytest.mark.slow
 def test_check_and_fix_against_the_emulator():
     port = free_port()
-    emu = subprocess.Popen([sys.executable, str(REPO / "tools" / "vehicle_emulator.py"), "--world", str(REPO / "config" / "worlds" / "one_cube_1m.yaml"),
+    emu = subprocess.Popen([sys.executable, "-m", "auxgps.sim.emulator", "--world", "one_cube_1m",
                             "--port", str(port), "--gps2-type", "0", "--max-seconds", "120"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 20

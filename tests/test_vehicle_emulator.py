@@ -1,4 +1,4 @@
-"""The vehicle emulator (tools/vehicle_emulator.py): its ArduPilot rules, then two flights over loopback TCP.
+"""The vehicle emulator (auxgps.sim.emulator): its ArduPilot rules, then two flights over loopback TCP.
 
 Unit tests drive the pure part with emulated times; the end-to-end tests start the emulator as a process,
 talk MAVLink 2 to it with pymavlink and read its JSON log. Every process is killed at the end of its test.
@@ -24,14 +24,12 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
 
 from auxgps.core.geometry import LocalFrame  # noqa: E402
-from tests.conftest import load_tool  # noqa: E402
+import auxgps.sim.emulator as emu  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
-EMULATOR_PATH = REPO / "tools" / "vehicle_emulator.py"
 WORLD = REPO / "config" / "worlds" / "one_cube_1m.yaml"
 
 
-emu = load_tool("vehicle_emulator")
 MAV = emu.MAV
 FRAME = LocalFrame(47.397742, 8.545594, 488.0)
 
@@ -305,7 +303,7 @@ class Emulator:
         raise RuntimeError(f"the emulator did not start; see {self.stderr_path}")
 
     def _start(self, port: int) -> bool:
-        cmd = [sys.executable, str(EMULATOR_PATH), "--port", str(port), "--world", str(WORLD),
+        cmd = [sys.executable, "-m", "auxgps.sim.emulator", "--port", str(port), "--world", str(WORLD),
                "--log", str(self.log_path), *self.args]
         with open(self.stderr_path, "ab") as err:
             self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, cwd=REPO)

@@ -15,7 +15,7 @@ flies, with a :class:`StageClock` passed in as its stopwatch; the stages are exc
 The positioning flight is replayed against the map the survey built, and against that map padded with
 synthetic landmarks (random descriptors, usable, at the real map's density) to each size in ``map_sizes``,
 over a proportionally larger square with the real map in its middle: the frames' own landmarks are in it, and
-the index must find them among the rest. A method to compare (the thesis' baseline, ``tools/``) is run on the
+the index must find them among the rest. A method to compare (the thesis' baseline, :mod:`auxgps.evaluation.thesis_baseline`) is run on the
 same frames through the small :class:`Method` interface.
 
 Latency from capture to the GPS_INPUT carrying a frame is modelled on :mod:`auxgps.companion`: the frame is

@@ -177,7 +177,10 @@ def world_from_spec(spec: WorldSpec, source: str = "", base_dir: Path | None = N
 
 
 def load_world(path: Path | str) -> World:
-    """Read a world YAML file. Any problem is a :class:`ConfigError` naming the file and the key."""
-    path = Path(path)
+    """Read a world YAML file, or one of auxgps's worlds by name (:func:`auxgps.resources.world_path`). Any problem
+    is a :class:`ConfigError` naming the file and the key."""
+    from auxgps.resources import world_path
+
+    path = world_path(path)
     spec = parse_as(WorldSpec, read_yaml(path), path)
     return world_from_spec(spec, source=str(path), base_dir=path.parent)

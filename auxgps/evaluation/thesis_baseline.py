@@ -1,4 +1,3 @@
-#!/usr/bin/env python3
 """The thesis' method (its Chapter 3) as it describes it, for `auxgps bench` to run beside auxgps on the same frames.
 
 Per image pair (the previous frame and the current one), as in its Listings 3.1 and 3.2:

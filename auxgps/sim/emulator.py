@@ -1,7 +1,6 @@
-#!/usr/bin/env python3
 """A vehicle emulator that behaves like ArduPilot copter SITL where auxgps meets it, for fast tests and the demo.
 
-    .venv/bin/python tools/vehicle_emulator.py --world config/worlds/one_cube_1m.yaml --port 5760 \\
+    python -m auxgps.sim.emulator --world one_cube_1m --port 5760 \\
         [--altitude 15] [--speedup 1] [--fail-gps1-at 60] [--gps2-type 14] [--auto-switch 1] [--log out/emu.json]
 
 It serves MAVLink 2 on TCP 127.0.0.1:PORT (one client at a time; it keeps flying when the client leaves and
@@ -50,10 +49,6 @@ os.environ["MAVLINK20"] = "1"  # before pymavlink is imported: MAVLink 2 (GPS_IN
 import numpy as np  # noqa: E402
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.quaternion import QuaternionBase  # noqa: E402
-
-REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 from auxgps.core.geometry import LocalFrame, R_ned_body_from_euler  # noqa: E402
 from auxgps.errors import AuxGpsError  # noqa: E402
