@@ -154,6 +154,10 @@ class FusionConfig:
     reinit_window_s: Positive = 3.0
     reinit_speed_sigma_m_s: Positive = 0.5
     max_specific_force_m_s2: Positive = 160.0  # 16 g: what a flight controller's accelerometer can report
+    # IMU samples further apart than this (a link outage) are not integrated across the gap: the state is carried
+    # at constant velocity, and an unknown acceleration of this one sigma loosens it (5 s: 12.5 m, 5 m/s).
+    max_imu_gap_s: Annotated[float, Field(gt=0, le=5)] = 0.25
+    imu_gap_accel_sigma_m_s2: Positive = 1.0
     output_rate_hz: Annotated[float, Field(gt=0, le=100)] = 10.0
 
 

@@ -293,3 +293,171 @@ class SerialBridge:
         self.sock.close()
         for fd in (self.master, self._slave):
             os.close(fd)
+
+
+class LineProxy:
+    """Between auxgps (which connects here) and the emulator: cuts auxgps's side of the link for a while (its TCP
+    connection closed, new ones refused), injects bytes towards auxgps, and notes when each GPS_INPUT from auxgps
+    went through (wall clock)."""
+
+    def __init__(self, emulator_port: int) -> None:
+        import os
+        import threading
+
+        os.environ.setdefault("MAVLINK20", "1")
+        from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+        self.up = socket.create_connection(("127.0.0.1", emulator_port), timeout=10)
+        self.server = socket.socket()
+        self.server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.server.bind(("127.0.0.1", 0))
+        self.server.listen(4)
+        self.port = self.server.getsockname()[1]
+        self.down: socket.socket | None = None
+        self.cut_until = 0.0
+        self.gps_input_t: list[float] = []
+        self._parser = mavlink.MAVLink(None)
+        self._parser.robust_parsing = True
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        for target in (self._accept, self._pump_up, self._pump_down):
+            threading.Thread(target=target, daemon=True).start()
+
+    def _accept(self) -> None:
+        import time
+
+        self.server.settimeout(0.1)
+        while not self._stop.is_set():
+            try:
+                conn, _ = self.server.accept()
+            except OSError:
+                continue
+            if time.monotonic() < self.cut_until:
+                conn.close()  # the line is down: refused
+                continue
+            with self._lock:
+                self.down = conn
+
+    def _pump_up(self) -> None:
+        """Emulator -> auxgps (dropped while the line is down)."""
+        while not self._stop.is_set():
+            try:
+                data = self.up.recv(65536)
+            except OSError:
+                return
+            if not data:
+                return
+            with self._lock:
+                down = self.down
+            if down is not None:
+                try:
+                    down.sendall(data)
+                except OSError:
+                    pass
+
+    def _pump_down(self) -> None:
+        """auxgps -> emulator, noting GPS_INPUT."""
+        import select
+        import time
+
+        while not self._stop.is_set():
+            with self._lock:
+                down = self.down
+            if down is None:
+                time.sleep(0.01)
+                continue
+            ready, _, _ = select.select([down], [], [], 0.1)
+            if not ready:
+                continue
+            try:
+                data = down.recv(65536)
+            except OSError:
+                data = b""
+            if not data:
+                with self._lock:
+                    if self.down is down:
+                        self.down = None
+                continue
+            now = time.monotonic()
+            for msg in self._parser.parse_buffer(data) or []:
+                if msg.get_type() == "GPS_INPUT":
+                    self.gps_input_t.append(now)
+            self.up.sendall(data)
+
+    def cut(self, seconds: float) -> float:
+        """Close auxgps's connection and refuse new ones for ``seconds``; returns when the line is back."""
+        import time
+
+        self.cut_until = time.monotonic() + seconds
+        with self._lock:
+            down, self.down = self.down, None
+        if down is not None:
+            down.close()
+        time.sleep(seconds)
+        return self.cut_until
+
+    def inject(self, n_bytes: int, seed: int = 5) -> None:
+        """Random bytes towards auxgps, in chunks between the real traffic."""
+        import random
+        import time
+
+        rng = random.Random(seed)
+        sent = 0
+        while sent < n_bytes:
+            chunk = bytes(rng.getrandbits(8) for _ in range(4096))
+            with self._lock:
+                down = self.down
+            if down is not None:
+                down.sendall(chunk)
+                sent += len(chunk)
+            time.sleep(0.002)
+
+    def close(self) -> None:
+        self._stop.set()
+        for s in (self.up, self.server, self.down):
+            if s is not None:
+                s.close()
+
+
+@pytest.mark.slow
+def test_a_dropped_link_is_back_within_a_second_and_a_megabyte_of_noise_changes_nothing(tmp_path):
+    """Mid-flight, 1 MB of random bytes on the line, then the line cut for 5 s and restored: auxgps reconnects,
+    GPS_INPUT goes through again within 1 s of the line's return, and the vehicle finishes its flight."""
+    import time
+
+    port = free_port()
+    emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "4", "--fail-gps1-at", "45", "--max-seconds", "150")
+    proxy = run = None
+    try:
+        deadline = time.monotonic() + 20
+        while proxy is None:
+            try:
+                proxy = LineProxy(port)
+            except OSError:
+                assert time.monotonic() < deadline, "the emulator did not listen"
+                time.sleep(0.2)
+        run = subprocess.Popen(
+            [sys.executable, "-m", "auxgps.cli", "run", "--connect", f"tcp:127.0.0.1:{proxy.port}", "--camera", f"sim:{WORLD}",
+             "--log-dir", str(tmp_path / "run"), "--duration", "170"],
+            stdout=subprocess.DEVNULL, stderr=open(tmp_path / "run.log", "w"), cwd=REPO,
+        )
+        deadline = time.monotonic() + 45
+        while len(proxy.gps_input_t) < 50:
+            assert time.monotonic() < deadline, (tmp_path / "run.log").read_text()[-2000:]
+            time.sleep(0.2)
+        proxy.inject(1 << 20)
+        sent_before_cut = len(proxy.gps_input_t)
+        back_at = proxy.cut(5.0)
+        time.sleep(3.0)
+        emu.wait(timeout=170)
+    finally:
+        stop(emu, run)
+        if proxy is not None:
+            proxy.close()
+    after = [t for t in proxy.gps_input_t if t >= back_at]
+    assert after and after[0] - back_at <= 1.0, f"GPS_INPUT back {after[0] - back_at if after else None} s after the line"
+    assert sent_before_cut >= 50 and len(after) > 100
+    log = json.loads((tmp_path / "emu.json").read_text())
+    assert log["exit_reason"] == "landed" and not any(e["event"] == "failsafe" for e in log["events"])
+    text = (tmp_path / "run.log").read_text()
+    assert "back after" in text and "not MAVLink skipped" in text and "Traceback" not in text

@@ -40,7 +40,7 @@ def test_bad_world_names_file_and_key(tmp_path, text, key):
 def test_bad_yaml_and_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="not valid YAML"):
         load_world(write(tmp_path, "origin: [\n"))
-    with pytest.raises(ConfigError, match="cannot read"):
+    with pytest.raises(ConfigError, match="absent.yaml.: no such file"):
         load_world(tmp_path / "absent.yaml")
 
 

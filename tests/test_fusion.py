@@ -295,3 +295,16 @@ def test_position_between_imu_samples_is_compared_with_the_state_carried_to_its_
         f.propagate(hover(0.01 * k))
     d = f.update_position(0.505, np.array([0.505, 0.0]), np.eye(2) * 0.01**2)
     assert d.accepted and d.mahalanobis2 < 1e-6
+
+
+def test_an_imu_gap_is_not_integrated_from_one_sample_and_loosens_the_state():
+    """A link outage: 5 s without IMU, then a sample of 1 m/s^2 north. Integrated across the gap it would add 5 m/s;
+    carried at constant velocity, the velocity is unchanged and the position's sigma grows past GPS_INPUT's 2 m."""
+    f = NavFilter(FusionConfig(), 0.0, np.zeros(3), np.array([1.0, 0.0, 0.0]), 0.05, 0.05)
+    for k in range(1, 11):
+        f.propagate(hover(0.01 * k))
+    f.propagate(ImuSample(5.1, HOVER_F + np.array([1.0, 0.0, 0.0]), LEVEL))
+    est = f.estimate()
+    assert est.v_ned_m_s[0] == pytest.approx(1.0, abs=1e-9)
+    assert est.p_ned_m[0] == pytest.approx(5.1, abs=1e-9)  # 1 m/s for 5.1 s
+    assert est.sigma_h_worst_m > 2.0

@@ -73,3 +73,16 @@ def test_status_lines_at_most_one_a_second():
     third = s.decide(1.0, sigma_h_worst_m=0.1, last_correction_t_s=0.9)
     assert first.status is not None and second.status is None and third.status is not None
     assert "positioning" in third.status
+
+
+def test_gps1_rejoins_at_once_when_auxgps_has_no_position_of_its_own():
+    """After a link outage (no IMU for seconds) auxgps's estimate is metres loose: nothing to check GPS1 against."""
+    s = Supervisor(SupervisorConfig(rejoin_s=10.0, max_sigma_h_m=2.0))
+    s.gps1(good(0.0), None, None)
+    s.gps1(Gps1Sample(1.0, 0, 3, P, 99.0), P, COV)
+    assert not s.gps1_trusted
+    s.gps1(good(1.2), P, np.eye(2) * 1.9**2)  # still a position of its own: wait
+    assert not s.gps1_trusted
+    s.gps1(good(1.4), P, np.diag([0.5, 2.5**2]))  # 2.5 m along its worst axis: trust GPS1 now
+    assert s.gps1_trusted
+    assert "no position of its own" in s.decide(1.5, sigma_h_worst_m=2.5, last_correction_t_s=1.4).status

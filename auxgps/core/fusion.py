@@ -245,6 +245,10 @@ class NavFilter:
         if dt <= 0:
             return
         cfg = self.cfg
+        if dt > cfg.max_imu_gap_s:
+            self._carry_across_gap(dt)
+            self.t_s = imu.t_s
+            return
         R = imu.R_ned_body
         # F, B and Q are written entry by entry into zeros and an identity (the same numbers as sums of scaled
         # identity blocks, a few times faster: this runs at the IMU rate, and again for every sample replayed
@@ -269,6 +273,24 @@ class NavFilter:
         self._ekf.F, self._ekf.B, self._ekf.Q = F, B, Q
         self._ekf.predict(u)
         self.t_s = imu.t_s
+
+    def _carry_across_gap(self, dt: float) -> None:
+        """No IMU for ``dt`` s (a link outage): one sample's specific force says nothing of the gap, so the state is
+        carried at constant velocity, loosened by an unknown acceleration of ``imu_gap_accel_sigma_m_s2``."""
+        log.warning("no IMU sample for %.2f s: carried at constant velocity, covariance loosened", dt)
+        F = np.eye(_N)
+        F[_I3, _I3 + 3] = dt
+        decay = np.exp(-dt / self.cfg.fix_bias_tau_s)
+        F[9, 9] = F[10, 10] = decay
+        a2 = self.cfg.imu_gap_accel_sigma_m_s2**2
+        Q = np.zeros((_N, _N))
+        Q[_I3, _I3] = a2 * dt**4 / 4.0
+        Q[_I3, _I3 + 3] = Q[_I3 + 3, _I3] = a2 * dt**3 / 2.0
+        Q[_I3 + 3, _I3 + 3] = a2 * dt**2
+        Q[_I3 + 6, _I3 + 6] = self.cfg.accel_bias_walk_m_s2_sqrt_s**2 * dt
+        Q[9, 9] = Q[10, 10] = self.cfg.fix_bias_sigma_m**2 * (1.0 - decay**2)
+        self._ekf.x = F @ self._ekf.x
+        self._ekf.P = F @ self._ekf.P @ F.T + Q
 
     def _last_not_after(self, t_s: float) -> int:
         """Index of the last history step not later than ``t_s`` (-1 when the history starts after it)."""

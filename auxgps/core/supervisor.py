@@ -9,7 +9,8 @@ Modes
 - ``NO_FIX``: auxgps does not believe its own estimate (no recent correction, or too uncertain); it keeps
   sending at rate, without a fix.
 
-GPS1 becomes trusted again only after it has agreed with auxgps's estimate for ``rejoin_s`` without a break.
+GPS1 becomes trusted again only after it has agreed with auxgps's estimate for ``rejoin_s`` without a break, or at
+once when auxgps has no estimate of its own worth comparing with (looser than ``max_sigma_h_m``).
 """
 
 from __future__ import annotations
@@ -100,6 +101,13 @@ class Supervisor:
             return
         if not self._ever_trusted:
             self.gps1_trusted = self._ever_trusted = True  # first lock: nothing of ours to compare with yet
+            return
+        if cov_est_ne_m2 is None or float(np.sqrt(np.linalg.eigvalsh(cov_est_ne_m2)[-1])) > cfg.max_sigma_h_m:
+            # auxgps has no position of its own worth comparing (after a link outage without IMU, or a long run
+            # without fixes): waiting rejoin_s would leave the vehicle with nothing, and GPS1 would agree with any
+            # estimate that loose anyway.
+            self.gps1_trusted = True
+            self._say("GPS1 trusted again: auxgps had no position of its own", sample.t_s)
             return
         self._agree_since = sample.t_s if self._agree_since is None else self._agree_since
         if sample.t_s - self._agree_since >= cfg.rejoin_s:

@@ -1,7 +1,8 @@
-"""Camera sources: a simulated world rendered at the simulator's true pose, a video file, an OpenCV device.
+"""Camera sources: a simulated world rendered at the simulator's true pose, a camera device, a GStreamer or RTSP
+pipeline, a video file, a folder of images (see :func:`open_camera`).
 
-``open_camera("sim:WORLD.yaml" | "PATH.mp4" | "0", ...)``. ``read()`` returns a :class:`Frame` or None when no
-frame is available now; a corrupt frame is logged and skipped, never raised.
+``read()`` returns a :class:`Frame` or None when no frame is available now; a corrupt frame is logged and
+skipped, never raised; a source whose frames do not match the camera model is one :class:`ConfigError`.
 """
 
 from __future__ import annotations
@@ -56,44 +57,115 @@ class SimCamera:
 
 
 class CaptureCamera:
-    """A video file or a camera device through OpenCV's VideoCapture."""
+    """A camera device (an index, a V4L2 path), a GStreamer or RTSP pipeline, or a video file, through OpenCV.
 
-    def __init__(self, source: str | int) -> None:
+    A live source's frames are stamped with the monotonic clock when read; a file's at its frame rate from the
+    start. ``size`` (width, height): what the camera model expects; a source giving other frames is a
+    :class:`ConfigError` at its first frame, not frames read with the wrong geometry.
+    """
+
+    def __init__(self, source: str | int, *, live: bool, size: tuple[int, int] | None = None, api: int = cv2.CAP_ANY,
+                 hint: str = "") -> None:
         self.source = source
-        self.cap = cv2.VideoCapture(source)
+        self.cap = cv2.VideoCapture(source, api)
         if not self.cap.isOpened():
-            raise ConfigError(f"camera {source!r}: cannot be opened")
-        self.is_file = isinstance(source, str)
+            raise ConfigError(f"camera {source!r}: cannot be opened{hint}")
+        self.live = live
+        self.size = size
         self.fps = self.cap.get(cv2.CAP_PROP_FPS) or 30.0
         self._t0 = time.monotonic()
         self._n = 0
+        self._checked = False
 
     def read(self) -> Frame | None:
         ok, image = self.cap.read()
+        t = time.monotonic()
         if not ok or image is None or image.ndim != 3 or image.dtype != np.uint8:
-            if not ok and self.is_file:
+            if not ok and not self.live:
                 return None  # end of file
             log.warning("camera %r: unreadable frame skipped", self.source)
             return None
+        if not self._checked and self.size is not None:
+            self._checked = True
+            if (image.shape[1], image.shape[0]) != tuple(self.size):
+                raise ConfigError(f"camera {self.source!r} gives {image.shape[1]}x{image.shape[0]} px frames, the camera model is "
+                                  f"{self.size[0]}x{self.size[1]}: calibrate it (auxgps camera calibrate) or set the camera's size")
         self._n += 1
-        t = self._t0 + self._n / self.fps if self.is_file else time.monotonic()
-        return Frame(t, image)
+        return Frame(t if self.live else self._t0 + self._n / self.fps, image)
 
     def close(self) -> None:
         self.cap.release()
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+class ImageFolderCamera:
+    """The images of a folder in name order, as frames ``1 / fps`` apart from the start (as a video file)."""
+
+    def __init__(self, folder: Path, fps: float = 10.0, size: tuple[int, int] | None = None) -> None:
+        self.files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not self.files:
+            raise ConfigError(f"camera {str(folder)!r}: a folder without images ({', '.join(IMAGE_SUFFIXES)})")
+        self.fps, self.size = fps, size
+        self._t0 = time.monotonic()
+        self._n = 0
+
+    def read(self) -> Frame | None:
+        while self._n < len(self.files):
+            path = self.files[self._n]
+            self._n += 1
+            image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if image is None:
+                log.warning("camera: %s is not readable as an image; skipped", path)
+                continue
+            if self.size is not None and (image.shape[1], image.shape[0]) != tuple(self.size):
+                log.warning("camera: %s is %dx%d px, the camera model %dx%d; skipped", path, image.shape[1], image.shape[0], *self.size)
+                continue
+            return Frame(self._t0 + self._n / self.fps, image)
+        return None
+
+    def close(self) -> None:
+        pass
+
+
 def open_camera(spec: str, camera: PinholeCamera, R_body_cam: np.ndarray, truth: Callable | None = None):
-    """``sim:WORLD.yaml``, a video file path, or an integer device index."""
+    """A camera source from ``--camera``:
+
+    - ``sim:WORLD`` the simulated world rendered at the simulator's true pose (SITL, the emulator);
+    - ``0`` a device index, ``/dev/video0`` a V4L2 device;
+    - a GStreamer pipeline (any text with ``!``, ending in ``appsink``), or an ``rtsp://`` or ``http://`` stream;
+    - a video file, or a folder of images (in name order).
+    """
+    size = (camera.width_px, camera.height_px)
     if spec.startswith("sim:"):
         if truth is None:
             raise ConfigError("camera sim: needs the simulator's truth (SIMSTATE / SIM_STATE) from the link")
         return SimCamera(spec[4:], camera, R_body_cam, truth)
     if spec.isdigit():
-        return CaptureCamera(int(spec))
-    if not Path(spec).exists():
-        raise ConfigError(f"camera {spec!r}: no such file, and not sim:WORLD.yaml or a device index")
-    return CaptureCamera(spec)
+        return CaptureCamera(int(spec), live=True, size=size)
+    if spec.startswith("/dev/"):
+        if not Path(spec).exists():
+            raise ConfigError(f"camera {spec!r}: no such device")
+        return CaptureCamera(spec, live=True, size=size, api=cv2.CAP_V4L2)
+    if "!" in spec:
+        return CaptureCamera(spec, live=True, size=size, api=cv2.CAP_GSTREAMER,
+                             hint=" as a GStreamer pipeline (this OpenCV " + ("has" if _has_gstreamer() else "has no") + " GStreamer;"
+                             " opencv-python-headless from PyPI has none: use a system OpenCV built with it)")
+    if "://" in spec:
+        return CaptureCamera(spec, live=True, size=size, api=cv2.CAP_FFMPEG, hint=" as a network stream")
+    path = Path(spec)
+    if path.is_dir():
+        return ImageFolderCamera(path, size=size)
+    if not path.exists():
+        raise ConfigError(f"camera {spec!r}: no such file or folder, and not sim:WORLD, a device (0, /dev/video0), a GStreamer "
+                          "pipeline or an rtsp:// stream")
+    return CaptureCamera(spec, live=False, size=size)
+
+
+def _has_gstreamer() -> bool:
+    info = cv2.getBuildInformation()
+    return any(line.strip().startswith("GStreamer:") and "YES" in line for line in info.splitlines())
 
 
 def calibration_images(*, video: str | None = None, images: str | None = None, every_s: float = 0.5):

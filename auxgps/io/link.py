@@ -195,6 +195,7 @@ class MavLink:
         self.n_bad_data = 0
         self.failure: BaseException | None = None
         self._lost_at: float | None = None
+        self._send_failing = False
         self._last_heartbeat = 0.0
         self._conn = None
         self._send_lock = threading.Lock()
@@ -290,7 +291,7 @@ class MavLink:
             if self._conn is None:
                 if not self._open():
                     self._stop.wait(backoff)
-                    backoff = min(backoff * 2, 2.0)
+                    backoff = min(backoff * 2, 0.5)  # a link back is in use again within half a second
                     continue
                 backoff = 0.2
             while not self._stop.is_set() and self._conn is not None:
@@ -304,6 +305,9 @@ class MavLink:
                     self._lost(f"without a HEARTBEAT from the autopilot for {now - self._last_heartbeat:.1f} s")
                     break
                 if msg is None:
+                    if self._closed_by_peer():
+                        self._lost("closed by the other end")
+                        break
                     continue
                 try:
                     self._handle(msg, now)
@@ -337,6 +341,20 @@ class MavLink:
 
     # -- writing --------------------------------------------------------------------------------------------
 
+    def _closed_by_peer(self) -> bool:
+        """True when a TCP connection has been closed by the other end (pymavlink reads that as no data)."""
+        import select
+        import socket
+
+        sock = getattr(self._conn, "port", None)
+        if not isinstance(sock, socket.socket):
+            return False
+        try:
+            readable, _, _ = select.select([sock], [], [], 0)
+            return bool(readable) and sock.recv(1, socket.MSG_PEEK) == b""
+        except (OSError, ValueError):
+            return True
+
     def _send(self, build: Callable) -> bool:
         conn = self._conn
         if conn is None:
@@ -344,9 +362,12 @@ class MavLink:
         try:
             with self._send_lock:
                 conn.mav.send(build(conn.mav))
+            self._send_failing = False
             return True
         except (OSError, ConnectionError) as err:
-            log.warning("send on %s failed: %s", self.url, err)
+            if not self._send_failing:  # once per outage, not ten times a second
+                log.warning("send on %s failed: %s", self.url, err)
+            self._send_failing = True
             return False
 
     def _heartbeat_loop(self) -> None:
