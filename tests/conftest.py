@@ -1,5 +1,7 @@
 import importlib.util
+import socket
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -38,3 +40,22 @@ def make_world(cubes, ground=None):
     if ground is not None:
         data["ground"] = ground
     return world_from_spec(parse_as(WorldSpec, data, "test"))
+
+
+def free_port() -> int:
+    """A TCP port on loopback that nothing listens on now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def when_listening(connect, timeout_s: float = 20.0):
+    """``connect()`` retried until it stops raising OSError (a process just started, not listening yet)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return connect()
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)

@@ -1,12 +1,13 @@
 """A user's mistake is one line naming what is wrong and exit code 2 (usage) or 1 (runtime); a bug is exit 3 with
 the traceback kept in a file. Never a traceback on the screen."""
 
-import socket
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from tests.conftest import free_port
 
 REPO = Path(__file__).resolve().parent.parent
 WORLD = str(REPO / "config" / "worlds" / "one_cube_1m.yaml")
@@ -14,12 +15,6 @@ WORLD = str(REPO / "config" / "worlds" / "one_cube_1m.yaml")
 
 def auxgps(*args: str, timeout_s: float = 60) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "auxgps.cli", *args], cwd=REPO, capture_output=True, text=True, timeout=timeout_s)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.mark.parametrize(

@@ -8,14 +8,10 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import free_port, when_listening
+
 REPO = Path(__file__).resolve().parent.parent
 WORLD = str(REPO / "config" / "worlds" / "cubes4_0.5m_different.yaml")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def start_emulator(port: int, log: Path, *options: str) -> subprocess.Popen:
@@ -48,20 +44,13 @@ def short_flight(tmp_path_factory):
     """A short survey on the emulator, GPS1 failing at 20 s, flown by `auxgps run --record` over a serial line: the
     emulator's TCP port bridged to a pseudo-terminal pair, auxgps on its slave end at 921600 baud, as on a vehicle's
     UART."""
-    import time
 
     tmp_path = tmp_path_factory.mktemp("short_flight")
     port = free_port()
     emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "6", "--fail-gps1-at", "20", "--max-seconds", "150")
     bridge = run = None
     try:
-        deadline = time.monotonic() + 20
-        while bridge is None:
-            try:
-                bridge = SerialBridge(port)
-            except OSError:
-                assert time.monotonic() < deadline, "the emulator did not listen"
-                time.sleep(0.2)
+        bridge = when_listening(lambda: SerialBridge(port))
         run = subprocess.Popen(
             [sys.executable, "-m", "auxgps.cli", "run", "--connect", f"{bridge.path},921600", "--camera", f"sim:{WORLD}",
              "--log-dir", str(tmp_path / "run"), "--duration", "150", "--save-map", str(tmp_path / "map.npz"),
@@ -429,13 +418,7 @@ def test_a_dropped_link_is_back_within_a_second_and_a_megabyte_of_noise_changes_
     emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "4", "--fail-gps1-at", "45", "--max-seconds", "150")
     proxy = run = None
     try:
-        deadline = time.monotonic() + 20
-        while proxy is None:
-            try:
-                proxy = LineProxy(port)
-            except OSError:
-                assert time.monotonic() < deadline, "the emulator did not listen"
-                time.sleep(0.2)
+        proxy = when_listening(lambda: LineProxy(port))
         run = subprocess.Popen(
             [sys.executable, "-m", "auxgps.cli", "run", "--connect", f"tcp:127.0.0.1:{proxy.port}", "--camera", f"sim:{WORLD}",
              "--log-dir", str(tmp_path / "run"), "--duration", "170"],

@@ -1,13 +1,14 @@
 """auxgps as a package: the wheel ships everything its commands need, and works from outside the checkout."""
 
 import os
-import socket
 import subprocess
 import sys
 import tomllib
 from pathlib import Path
 
 import pytest
+
+from tests.conftest import free_port
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -26,12 +27,6 @@ def test_worlds_are_found_by_name_and_a_wrong_name_lists_them():
     assert load_world("one_cube_1m").cubes and world_path("one_cube_1m.yaml").name == "one_cube_1m.yaml"
     with pytest.raises(ConfigError, match="one_cube_1m"):
         world_path("one_cube_7m")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.mark.slow

@@ -3,12 +3,12 @@
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from auxgps.core.autopilot_setup import Observed, check_setup, param_names, read_parm_file
+from tests.conftest import free_port, when_listening
 
 REPO = Path(__file__).resolve().parent.parent
 WANTED = read_parm_file((REPO / "config" / "ardupilot" / "auxgps-gps2.parm").read_text())
@@ -49,12 +49,6 @@ def test_a_bad_parameter_file_line_is_named():
         read_parm_file("GPS2_TYPE 14\nGPS_AUTO_SWITCH\n")
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def check(port, *args):
     return subprocess.run([sys.executable, "-m", "auxgps.cli", "check", "--connect", f"tcp:127.0.0.1:{port}", *args],
                           cwd=REPO, capture_output=True, text=True, timeout=120)
@@ -66,13 +60,7 @@ def test_check_and_fix_against_the_emulator():
     emu = subprocess.Popen([sys.executable, "-m", "auxgps.sim.emulator", "--world", "one_cube_1m",
                             "--port", str(port), "--gps2-type", "0", "--max-seconds", "120"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline:
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
-                break
-            except OSError:
-                time.sleep(0.1)
+        when_listening(lambda: socket.create_connection(("127.0.0.1", port), timeout=0.2).close())
         first = check(port, "--gps-delay-ms", "120")
         assert first.returncode == 1, first.stdout + first.stderr
         bad = [line for line in first.stdout.splitlines() if line.strip().startswith("BAD")]
