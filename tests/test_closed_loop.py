@@ -305,6 +305,7 @@ class LineProxy:
         self.down: socket.socket | None = None
         self.cut_until = 0.0
         self.gps_input_t: list[float] = []
+        self.texts: list[str] = []  # STATUSTEXT from auxgps
         self._parser = mavlink.MAVLink(None)
         self._parser.robust_parsing = True
         self._lock = threading.Lock()
@@ -371,6 +372,8 @@ class LineProxy:
             for msg in self._parser.parse_buffer(data) or []:
                 if msg.get_type() == "GPS_INPUT":
                     self.gps_input_t.append(now)
+                elif msg.get_type() == "STATUSTEXT":
+                    self.texts.append(msg.text)
             self.up.sendall(data)
 
     def cut(self, seconds: float) -> float:
@@ -444,3 +447,4 @@ def test_a_dropped_link_is_back_within_a_second_and_a_megabyte_of_noise_changes_
     assert log["exit_reason"] == "landed" and not any(e["event"] == "failsafe" for e in log["events"])
     text = (tmp_path / "run.log").read_text()
     assert "back after" in text and "not MAVLink skipped" in text and "Traceback" not in text
+    assert any(t.startswith("auxgps: link back after") for t in proxy.texts), proxy.texts  # told to the autopilot too

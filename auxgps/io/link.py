@@ -332,6 +332,7 @@ class MavLink:
             log.info("autopilot is system %d on %s", src, self.url)
             if self._lost_at is not None:
                 log.warning("link %s back after %.1f s", self.url, now - self._lost_at)
+                self.send_statustext(f"auxgps: link back after {now - self._lost_at:.1f} s", mav.MAV_SEVERITY_WARNING)
                 self._lost_at = None
         if src != self.target_system:
             return  # another system on the link
