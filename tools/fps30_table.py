@@ -39,6 +39,7 @@ def row(world: str, summary: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--first-seed", type=int, default=1, help="seeds first-seed .. first-seed + runs - 1 (default 1)")
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--mapping-fps", type=float, default=2.0)
     ap.add_argument("--altitude", type=float, default=15.0)
@@ -61,7 +62,7 @@ def main(argv=None) -> int:
     # Every (world, seed) run in one pool, so that no worker idles at a world's last run; a world's row is written
     # as soon as its runs are in, in the table's order.
     jobs = [(str(REPO / "config" / "worlds" / f"{w}.yaml"), args.altitude, args.fps, 1 + k, pipeline, sim, args.mapping_fps)
-            for w in worlds for k in range(args.runs)]
+            for w in worlds for k in range(args.first_seed - 1, args.first_seed - 1 + args.runs)]
     records: dict[str, list] = {w: [] for w in worlds}
     rows: dict[str, str] = {}
     with ProcessPoolExecutor(args.workers) as pool:
@@ -81,7 +82,7 @@ def main(argv=None) -> int:
             done = "" if len(rows) == len(worlds) else f" ({len(rows)} of {len(worlds)} worlds so far)"
             header = (f"# Fused output at {args.fps:g} frames a second\n\n`.venv/bin/python tools/fps30_table.py --runs {args.runs}` "
                       f"(each row: `auxgps eval --world config/worlds/W.yaml --altitude {args.altitude:g} --runs {args.runs} --fps {args.fps:g} "
-                      f"--mapping-fps {args.mapping_fps:g}`), {time.monotonic() - t0:.0f} s on this machine{done}. Seeds 1 to {args.runs}; "
+                      f"--mapping-fps {args.mapping_fps:g}`), {time.monotonic() - t0:.0f} s on this machine{done}. Seeds {args.first_seed} to {args.first_seed + args.runs - 1}; "
                       "figures over the GPS-denied part of the positioning flight, each output scored at the time it describes.\n\n")
             table = head + [rows[x] for x in worlds if x in rows]
             Path(args.out).write_text(header + "\n".join(table) + "\n")  # after every world: a cut run keeps what it did
