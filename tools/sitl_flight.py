@@ -195,11 +195,45 @@ def fly(gs: GroundStation) -> dict:
     }
 
 
+class PtyPair:
+    """Two pseudo-terminals joined back to back (what ``socat pty,raw pty,raw`` makes): SITL opens one end as its
+    SERIAL1 UART, auxgps the other, and the bytes cross as on a flight controller's serial port."""
+
+    def __init__(self) -> None:
+        import pty
+        import threading
+        import tty
+
+        (self._m1, s1), (self._m2, s2) = pty.openpty(), pty.openpty()
+        for fd in (s1, s2):
+            tty.setraw(fd)
+        self.a, self.b = os.ttyname(s1), os.ttyname(s2)
+        self._slaves = (s1, s2)
+        self._stop = threading.Event()
+        self.bytes = [0, 0]
+        threading.Thread(target=self._pump, daemon=True).start()
+
+    def _pump(self) -> None:
+        import select
+
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self._m1, self._m2], [], [], 0.1)
+            for src, dst, k in ((self._m1, self._m2, 0), (self._m2, self._m1, 1)):
+                if src in ready:
+                    try:
+                        data = os.read(src, 65536)
+                        os.write(dst, data)
+                        self.bytes[k] += len(data)
+                    except OSError:
+                        pass
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sitl", default=os.environ.get("ARDUPILOT_SITL"))
     ap.add_argument("--world", default=str(REPO / "config" / "worlds" / "cubes4_0.5m_different.yaml"))
     ap.add_argument("--out", default=str(REPO / "out" / "sitl"))
+    ap.add_argument("--serial", action="store_true", help="SERIAL1 on a pseudo-terminal pair at 921600 baud, not TCP 5762")
     args = ap.parse_args(argv)
     if not args.sitl or not Path(args.sitl).exists():
         print("no SITL binary: set ARDUPILOT_SITL or --sitl", file=sys.stderr)
@@ -213,14 +247,17 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scratch = tempfile.mkdtemp(prefix="sitl-")
-    sitl = subprocess.Popen([args.sitl, "--model", "quad", "--speedup", "1", "-I0", "--defaults", defaults,
+    line = PtyPair() if args.serial else None
+    serial = [f"--serial1=uart:{line.a}:921600"] if line else []
+    connect = f"{line.b},921600" if line else "tcp:127.0.0.1:5762"
+    sitl = subprocess.Popen([args.sitl, "--model", "quad", "--speedup", "1", "-I0", "--defaults", defaults, *serial,
                              "--home", f"{home[0]},{home[1]},{home[2]},0"], cwd=scratch,
                             stdout=open(out / "sitl.log", "w"), stderr=subprocess.STDOUT)
     run = None
     try:
         time.sleep(2)
         gs = GroundStation(home)
-        run = subprocess.Popen([sys.executable, "-m", "auxgps.cli", "run", "--connect", "tcp:127.0.0.1:5762",
+        run = subprocess.Popen([sys.executable, "-m", "auxgps.cli", "run", "--connect", connect,
                                 "--camera", f"sim:{args.world}", "--log-dir", str(out / "run"), "--duration", "1500",
                                 "--gps-delay-ms", str(GPS_DELAY_MS), "--record", str(out / "rec")],
                                cwd=REPO, stdout=open(out / "run.log", "w"), stderr=subprocess.STDOUT)
@@ -234,6 +271,8 @@ def main(argv=None) -> int:
             if p is not None and p.poll() is None:
                 p.terminate()
                 p.wait(timeout=20)
+    if line is not None:
+        result["serial_bytes"] = {"sitl_to_auxgps": line.bytes[0], "auxgps_to_sitl": line.bytes[1]}
     print(json.dumps(result))
     (out / "result.json").write_text(json.dumps(result, indent=2))
     return 0 if result["landed"] and result["landing_error_m"] <= 1.0 else 1
