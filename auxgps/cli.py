@@ -377,17 +377,23 @@ def _locate(args) -> int:
     return 0
 
 
-def _positive(kind):
+def _number(kind, accept, wanted: str):
+    """An argparse type: ``kind`` (int or float) parsed, and refused unless ``accept(value)``, saying ``wanted``."""
+
     def parse(text):
         try:
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a {'whole ' if kind is int else ''}number, got {text!r}") from None
-        if not value > 0:
-            raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+        if not accept(value):
+            raise argparse.ArgumentTypeError(f"must be {wanted}, got {text}")
         return value
 
     return parse
+
+
+def _positive(kind):
+    return _number(kind, lambda v: v > 0, "positive")
 
 
 def _link_url(text):
@@ -413,16 +419,7 @@ def _counts(text):
 
 
 def _non_negative(kind):
-    def parse(text):
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a {'whole ' if kind is int else ''}number, got {text!r}") from None
-        if not value >= 0:
-            raise argparse.ArgumentTypeError(f"must be zero or more, got {text}")
-        return value
-
-    return parse
+    return _number(kind, lambda v: v >= 0, "zero or more")
 
 
 def _version() -> str:

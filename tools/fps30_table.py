@@ -21,7 +21,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from auxgps.config import load_pipeline_config  # noqa: E402
-from auxgps.evaluation.driver import _one  # noqa: E402
+from auxgps.evaluation.driver import run_job  # noqa: E402
 from auxgps.evaluation.metrics import summarize  # noqa: E402
 from auxgps.sim.flight import load_sim_config  # noqa: E402
 
@@ -66,7 +66,7 @@ def main(argv=None) -> int:
     records: dict[str, list] = {w: [] for w in worlds}
     rows: dict[str, str] = {}
     with ProcessPoolExecutor(args.workers) as pool:
-        futures = {pool.submit(_one, job): Path(job[0]).stem for job in jobs}
+        futures = {pool.submit(run_job, job): Path(job[0]).stem for job in jobs}
         for fut in as_completed(futures):
             w = futures[fut]
             records[w].append(fut.result())

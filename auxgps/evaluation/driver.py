@@ -16,7 +16,8 @@ from auxgps.sim.flight import SimConfig
 from auxgps.sim.world import load_world
 
 
-def _one(args) -> RunRecord:
+def run_job(args) -> RunRecord:
+    """One seeded run from a job tuple (world path, altitude, fps, seed, pipeline, sim, mapping fps), in a worker."""
     import cv2
 
     cv2.setNumThreads(1)
@@ -46,10 +47,10 @@ def evaluate(
     workers = max(1, min(workers or os.cpu_count() or 1, runs))
     desc = f"{Path(world_path).stem} @ {alt_m:g} m"
     if workers == 1:
-        records = [_one(j) for j in tqdm(jobs, desc=desc, unit="run", disable=not progress)]
+        records = [run_job(j) for j in tqdm(jobs, desc=desc, unit="run", disable=not progress)]
     else:
         with ProcessPoolExecutor(workers) as pool:
-            records = list(tqdm(pool.map(_one, jobs), total=runs, desc=desc, unit="run", disable=not progress))
+            records = list(tqdm(pool.map(run_job, jobs), total=runs, desc=desc, unit="run", disable=not progress))
     summary = summarize(records)
     summary["scenario"] = {
         "world": str(world_path),
