@@ -135,6 +135,7 @@ def _run(args) -> int:
         gps1_lag_s=args.gps1_lag_ms / 1000.0,
         record_dir=args.record,
         connect_timeout_s=args.connect_timeout,
+        checkpoint_s=args.checkpoint,
     )
     return Companion(load_pipeline_config(args.config), opts).run()
 
@@ -468,7 +469,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera", required=True, help="sim:WORLD.yaml (rendered at the simulator's truth), a video file, or a device index")
     p.add_argument("--config", help="pipeline config YAML")
     p.add_argument("--map", help="load this map file at start (it must exist and be readable)")
-    p.add_argument("--save-map", help="save the map here at the end, atomically")
+    p.add_argument("--save-map", help="save the map here, atomically: while flying (see --checkpoint), at every mode change and at the end")
+    p.add_argument("--checkpoint", type=_non_negative(float), default=10.0, metavar="S",
+                   help="with --save-map, write the map every S seconds while flying (default 10; 0: at mode changes and the end only)")
     p.add_argument("--log-dir", default="out/run", help="CSV logs of fixes, gate decisions, GPS_INPUT and events")
     p.add_argument("--duration", type=_positive(float), help="stop after this many seconds")
     p.add_argument("--rate", type=_positive(float), default=10.0, help="GPS_INPUT rate, Hz (default 10)")

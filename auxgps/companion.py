@@ -39,6 +39,7 @@ class RunOptions:
     gps1_lag_s: float = 0.1  # a GPS1 reading describes the vehicle this long before its fix time (SITL: SIM_GPS1_LAG_MS)
     record_dir: str | None = None  # record what the estimator sees here (auxgps.io.recording)
     connect_timeout_s: float = 15.0  # at start, how long the autopilot may take to be there
+    checkpoint_s: float = 10.0  # with map_out: the map is also written this often while flying, and at every mode change (0: at the end only)
 
 
 class Companion:
@@ -63,6 +64,10 @@ class Companion:
         est = self.estimator
         self.camera = open_camera(opts.camera, est.camera, est.R_body_cam, truth=lambda: self._truth)
         self.sent = 0
+        self._mode = None  # the last GPS_INPUT's mode (timer thread)
+        self._checkpoint_wanted = threading.Event()  # a mode change asks the frame thread for a checkpoint
+        self._last_checkpoint_s = time.monotonic()
+        self.checkpoints = 0
 
     # -- messages from the autopilot (reader thread) --------------------------------------------------------
 
@@ -101,6 +106,10 @@ class Companion:
             if self.recorder is not None:
                 self.recorder.output(t_s, t_unix_s)
             out = self.estimator.output(t_s, t_unix_s)
+        if out.decision.mode != self._mode:
+            if self._mode is not None:
+                self._checkpoint_wanted.set()
+            self._mode = out.decision.mode
         if out.gps is None:
             return
         if self.link.send_gps_input(out.gps, int((t_unix_s - self.opts.gps_delay_s) * 1e6)):
@@ -126,6 +135,32 @@ class Companion:
         self.log.frame(res, self.estimator.frame)
         return res
 
+    # -- map checkpoints (main thread, which alone changes the map) -----------------------------------------
+
+    def _checkpoint(self, why: str) -> None:
+        """Write the map to ``--save-map`` atomically, so that a crash loses at most ``checkpoint_s`` of it."""
+        est = self.estimator
+        if not self.opts.map_out or est.frame is None:
+            return
+        t0 = time.monotonic()
+        try:
+            save_map(self.opts.map_out, est.landmarks, est.frame)
+        except OSError as err:  # a full or read-only disk must not end the flight; the previous checkpoint stays
+            log.error("map checkpoint to %s failed (%s): %s", self.opts.map_out, why, err)
+            return
+        finally:
+            self._last_checkpoint_s = time.monotonic()
+        self.checkpoints += 1
+        log.info("map of %d landmarks saved to %s (%s, %.0f ms)", len(est.landmarks), self.opts.map_out, why,
+                 (time.monotonic() - t0) * 1e3)
+
+    def _checkpoint_if_due(self) -> None:
+        if self._checkpoint_wanted.is_set():
+            self._checkpoint_wanted.clear()
+            self._checkpoint("mode change")
+        elif self.opts.checkpoint_s > 0 and time.monotonic() - self._last_checkpoint_s >= self.opts.checkpoint_s:
+            self._checkpoint("checkpoint")
+
     def run(self) -> int:
         self.link.open(self.opts.connect_timeout_s)  # LinkError: one clear line from the CLI
         self.link.start()
@@ -136,6 +171,7 @@ class Companion:
             while not self._stop.is_set() and (t_end is None or time.monotonic() < t_end):
                 if self.link.failure is not None:
                     raise LinkError(f"the link's reader stopped: {type(self.link.failure).__name__}: {self.link.failure}")
+                self._checkpoint_if_due()
                 frame = self.camera.read()
                 if frame is None:
                     time.sleep(0.005)
@@ -148,10 +184,7 @@ class Companion:
             timer.join(timeout=2.0)
             self.link.stop()
             self.camera.close()
-            est = self.estimator
-            if self.opts.map_out and est.frame is not None:
-                save_map(self.opts.map_out, est.landmarks, est.frame)
-                log.info("map of %d landmarks saved to %s", len(est.landmarks), self.opts.map_out)
+            self._checkpoint("end of flight")
             self.log.close()
             if self.recorder is not None:
                 stats = self.recorder.close()

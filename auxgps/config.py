@@ -153,6 +153,10 @@ class FusionConfig:
     reinit_count: Annotated[int, Field(ge=2)] = 5
     reinit_window_s: Positive = 3.0
     reinit_speed_sigma_m_s: Positive = 0.5
+    # Without GPS1 or a filter (a restart mid-flight), this many fixes located without a prior, within
+    # reinit_window_s, start the filter when they lie on one constant-velocity track no faster than the speed.
+    acquisition_fixes: Annotated[int, Field(ge=2)] = 3
+    acquisition_max_speed_m_s: Positive = 30.0
     max_specific_force_m_s2: Positive = 160.0  # 16 g: what a flight controller's accelerometer can report
     # IMU samples further apart than this (a link outage) are not integrated across the gap: the state is carried
     # at constant velocity, and an unknown acceleration of this one sigma loosens it (5 s: 12.5 m, 5 m/s).

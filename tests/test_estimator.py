@@ -42,7 +42,7 @@ def flight_events(seed=3, denied_from_s=14.0, fps=3.0):
             events.append(("frame", Frame(float(t), renderer.render(pose, sim.image_effects(), rng_img).image_bgr)))
         if i % out_every == 0:
             events.append(("output", float(t)))
-    return world, events
+    return world, events, traj
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +78,7 @@ def bits(x):
 
 @pytest.mark.slow
 def test_the_same_events_give_bit_identical_outputs(flight):
-    world, events = flight
+    world, events, _ = flight
     a_est, a = run(world, events)
     b_est, b = run(world, events)
     assert len(a) == len(b) == len(events)
@@ -92,7 +92,7 @@ def test_the_same_events_give_bit_identical_outputs(flight):
 
 @pytest.mark.slow
 def test_a_flight_maps_while_gps1_is_good_then_positions_on_its_map(flight):
-    world, events = flight
+    world, events, _ = flight
     est, said = run(world, events)
     frames = [(e, r) for (kind, e), r in zip(events, said) if kind == "frame"]
     outputs = [r for (kind, _), r in zip(events, said) if kind == "output"]
@@ -116,3 +116,61 @@ def test_the_attitude_of_a_frame_is_the_nearest_sample_even_out_of_order():
     assert [a.t_s for a in est._attitudes] == [0.0, 0.25, 0.375, 0.5, 0.75]
     for t, nearest in ((0.38, 0.375), (0.4375, 0.375), (0.44, 0.5), (-1.0, 0.0), (9.0, 0.75), (0.125, 0.0)):
         assert est._attitude_at(t)[0] == nearest  # a tie (0.125, 0.4375) takes the earlier sample
+
+
+@pytest.mark.slow
+def test_a_restart_without_gps1_starts_from_the_map_alone(flight):
+    """A crash mid-flight with GPS1 jammed: a new estimator with the map the flight had and nothing else says no
+    fix until fixes located without a prior lie on one track, then positions as well as the first."""
+    world, events, traj = flight
+    first, _ = run(world, events)
+    restart_s = 17.0
+    est = Estimator(PipelineConfig(), landmarks=first.landmarks, frame=world.frame)
+    acquired_s, outputs = None, []
+    for kind, e in events:
+        t = e if kind == "output" else e.t_s
+        if t < restart_s:
+            continue
+        if kind == "feed":
+            est.feed(e)
+        elif kind == "frame":
+            r = est.on_frame(e)
+            if acquired_s is None and r.reason.startswith("acquired"):
+                acquired_s = e.t_s
+        else:
+            outputs.append((acquired_s, est.output(e, T_UNIX_0 + e)))
+    assert acquired_s is not None and acquired_s - restart_s < 4.5, acquired_s  # at 3 frames a second
+    before = [o for a, o in outputs if a is None]
+    after = [o for a, o in outputs if a is not None and o.t_described_s > a]
+    assert before and all(o.gps.fix_type < 3 for o in before)  # no fix until it believes a position
+    assert after and all(o.gps.fix_type == 3 for o in after)
+    dt = traj.t_s[1] - traj.t_s[0]
+    err = [np.linalg.norm(o.estimate.p_ned_m[:2] - traj.p_ned_m[int(round(o.t_described_s / dt)), :2]) for o in after]
+    sig = [o.estimate.sigma_h_worst_m for o in after]
+    assert max(err) < 0.5 and np.mean(np.array(err) <= 3 * np.array(sig)) >= 0.97, (max(err), err[:5], sig[:5])
+
+
+def test_a_map_of_somewhere_else_is_refused_at_gps1s_first_fix():
+    from auxgps.core.events import Gps1, Position
+    from auxgps.core.geometry import LocalFrame
+    from auxgps.core.landmarks import LandmarkMap
+
+    def three_landmarks():
+        lm = LandmarkMap()
+        lm.add(np.zeros((3, 32), np.uint8), np.zeros((3, 3)), np.repeat(np.eye(3)[None], 3, 0), np.ones(3))
+        return lm
+
+    map_frame = LocalFrame(47.0, 8.0, 400.0)
+    est = Estimator(PipelineConfig(), landmarks=three_landmarks(), frame=map_frame)
+    est.feed(Position(0.0, np.nan, np.nan, np.nan, 0.0))
+    lat, lon, alt = map_frame.to_geodetic(np.array([4000.0, 3000.0, 0.0]))  # 5 km away
+    note = est.feed(Gps1(0.1, 3, 12, float(lat), float(lon), float(alt), 0.5))
+    assert note is not None and note.startswith("map refused: its origin is 5.0 km from GPS1"), note
+    assert len(est.landmarks) == 0 and est.frame != map_frame and est.filter is not None
+    np.testing.assert_allclose(est.frame.to_ned(lat_deg=float(lat), lon_deg=float(lon), alt_amsl_m=float(alt)), 0.0, atol=1e-6)
+
+    near = Estimator(PipelineConfig(), landmarks=three_landmarks(), frame=map_frame)  # 50 m away: kept
+    near.feed(Position(0.0, np.nan, np.nan, np.nan, 0.0))
+    lat, lon, alt = map_frame.to_geodetic(np.array([30.0, 40.0, 0.0]))
+    assert near.feed(Gps1(0.1, 3, 12, float(lat), float(lon), float(alt), 0.5)) is None
+    assert len(near.landmarks) == 3 and near.frame == map_frame

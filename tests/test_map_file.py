@@ -79,3 +79,68 @@ def test_failed_write_keeps_the_old_map(tmp_path, monkeypatch):
         save_map(target, some_map(seed=2), FRAME)
     assert target.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["m.npz"]  # no temporary left behind
+
+
+class _CutAfter:
+    """A file that dies after ``limit`` bytes, as a process killed in the middle of a write."""
+
+    def __init__(self, f, limit: int) -> None:
+        self._f, self._left = f, limit
+
+    def write(self, data) -> int:
+        data = bytes(data)
+        if len(data) > self._left:
+            self._f.write(data[: self._left])
+            self._f.flush()
+            raise KeyboardInterrupt("killed mid-write")
+        self._left -= len(data)
+        return self._f.write(data)
+
+    def __getattr__(self, name):
+        return getattr(self._f, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self._f.close()
+
+
+def test_a_checkpoint_cut_at_any_byte_leaves_the_previous_map_intact(tmp_path, monkeypatch):
+    from auxgps.io import map_file
+
+    target = tmp_path / "m.npz"
+    old, new = some_map(n=12, seed=1), some_map(n=15, seed=2)
+    save_map(target, old, FRAME)
+    before = target.read_bytes()
+    save_map(tmp_path / "new.npz", new, FRAME)
+    size = (tmp_path / "new.npz").stat().st_size
+    real_fdopen = map_file.os.fdopen
+    for limit in range(size):
+        monkeypatch.setattr(map_file.os, "fdopen", lambda fd, mode, _l=limit: _CutAfter(real_fdopen(fd, mode), _l))
+        with pytest.raises(KeyboardInterrupt):
+            save_map(target, new, FRAME)
+        assert target.read_bytes() == before, f"cut at byte {limit}"
+    monkeypatch.setattr(map_file.os, "fdopen", real_fdopen)
+    back, _ = load_map(target)
+    assert np.array_equal(back.p_ned_m[: len(back)], old.p_ned_m[: len(old)])
+
+
+def test_a_temporary_left_by_a_killed_writer_is_ignored_then_cleared(tmp_path):
+    target = tmp_path / "m.npz"
+    save_map(target, some_map(n=12, seed=1), FRAME)
+    save_map(tmp_path / "new.npz", some_map(n=15, seed=2), FRAME)
+    (tmp_path / "m.npz.abc123.tmp").write_bytes((tmp_path / "new.npz").read_bytes()[:500])  # kill -9 mid-write
+    assert len(load_map(target)[0]) == 12
+    save_map(target, some_map(n=15, seed=2), FRAME)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npz", "new.npz"]
+    assert len(load_map(target)[0]) == 15
+
+
+def test_a_map_cut_at_any_byte_is_one_clear_error(tmp_path):
+    save_map(tmp_path / "m.npz", some_map(n=12), FRAME)
+    data = (tmp_path / "m.npz").read_bytes()
+    for cut in range(len(data)):
+        (tmp_path / "cut.npz").write_bytes(data[:cut])
+        with pytest.raises(MapError):
+            load_map(tmp_path / "cut.npz")

@@ -15,6 +15,12 @@ Inputs (:mod:`auxgps.core.events`):
   and the frame), :meth:`finish_frame` fuses the fix. :meth:`on_frame` is the three in a row.
 - :meth:`output` is what GPS_INPUT says at a given time.
 
+Without GPS1 (jammed before take-off, or a restart after a crash mid-flight), a loaded map still gives a start:
+each frame is located against the whole map without a prior, and the filter starts once ``acquisition_fixes``
+fixes within ``reinit_window_s`` lie on one constant-velocity track (:func:`track_through`); until then GPS_INPUT says
+no fix. A loaded map whose origin is further than ``max_map_distance_m`` from GPS1's first fix is of somewhere
+else: it is dropped, said so once, and the flight maps afresh.
+
 Heights: ``alt_above_origin_m`` is above the local frame's origin (the map's, or the ground below GPS1's first
 fix); the autopilot reports heights above home, and the two differ by home's height above the origin.
 """
@@ -47,11 +53,13 @@ class EstimatorOptions:
     """Timing facts of the vehicle the estimator runs on.
 
     ``gps_delay_s``: each output describes the vehicle this long before it is asked for (the autopilot's
-    ``GPS2_DELAY_MS``); ``gps1_lag_s``: how long before the autopilot gets a GPS1 reading its receiver measured it.
+    ``GPS2_DELAY_MS``); ``gps1_lag_s``: how long before the autopilot gets a GPS1 reading its receiver measured it;
+    ``max_map_distance_m``: how far from a loaded map's origin GPS1's first fix may be, horizontally.
     """
 
     gps_delay_s: float = 0.1
     gps1_lag_s: float = 0.1
+    max_map_distance_m: float = 5000.0  # a loaded map's origin this far from GPS1's first fix is of somewhere else
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
 
 
@@ -66,7 +74,7 @@ class FrameJob:
     frame: Frame
     R_ned_body: np.ndarray
     alt_above_origin_m: float
-    prior: PositionPrior
+    prior: PositionPrior | None  # None: acquisition, no filter yet
     mapping: bool
     p_gps_ned_m: np.ndarray | None
 
@@ -113,6 +121,44 @@ class Output:
     estimate: FusedEstimate | None
 
 
+@dataclass(frozen=True)
+class Track:
+    """A constant-velocity track through a run of fixes, at the last one's time: position and velocity (north,
+    east) with their covariances."""
+
+    t_s: float
+    p_ne_m: np.ndarray
+    v_ne_m_s: np.ndarray
+    cov_p_m2: np.ndarray
+    cov_v_m2_s2: np.ndarray
+
+
+def track_through(fixes: list[Fix], gate_chi2: float, max_speed_m_s: float) -> Track | None:
+    """The weighted least-squares constant-velocity track through ``fixes`` (each with its covariance), or None
+    when any fix lies off it by more than the gate (squared Mahalanobis ``gate_chi2``) or its speed is beyond
+    ``max_speed_m_s``: fixes that do not tell one story start no filter."""
+    if len(fixes) < 2:
+        return None
+    t_last = fixes[-1].t_s
+    N, b, rows = np.zeros((4, 4)), np.zeros(4), []
+    for f in fixes:
+        A = np.hstack([np.eye(2), np.eye(2) * (f.t_s - t_last)])
+        W = np.linalg.inv(f.cov_ned_m2[:2, :2])
+        N += A.T @ W @ A
+        b += A.T @ W @ f.p_ned_m[:2]
+        rows.append((A, W, f.p_ned_m[:2]))
+    try:
+        cov = np.linalg.inv(N)
+    except np.linalg.LinAlgError:
+        return None  # fixes all at one time: no velocity
+    x = cov @ b
+    if any(float((p - A @ x) @ W @ (p - A @ x)) > gate_chi2 for A, W, p in rows):
+        return None
+    if float(np.linalg.norm(x[2:])) > max_speed_m_s:
+        return None
+    return Track(float(t_last), x[:2], x[2:], cov[:2, :2], cov[2:, 2:])
+
+
 class Estimator:
     """auxgps's decisions from events. ``landmarks`` and ``frame``: a map to start from (with its local frame),
     or a local frame alone (an empty map about a known origin); without a frame, GPS1's first 3D fix anchors one."""
@@ -142,6 +188,8 @@ class Estimator:
         self._gps1_sats: int | None = None
         self.last_correction_t_s: float | None = None
         self._last_disagreement: str | None = None
+        self._map_loaded = landmarks is not None and len(landmarks) > 0  # not yet checked against GPS1
+        self._acquiring: list[Fix] = []  # fixes located without a prior, while there is no filter
 
     # -- telemetry -----------------------------------------------------------------------------------------
 
@@ -194,6 +242,16 @@ class Estimator:
             self.frame = LocalFrame(rec.lat_deg, rec.lon_deg, rec.alt_amsl_m - self._alt_above_home_m)
             self._home_above_origin_m = 0.0
         p = self.frame.to_ned(lat_deg=rec.lat_deg, lon_deg=rec.lon_deg, alt_amsl_m=rec.alt_amsl_m)
+        refused = None
+        if self._map_loaded and rec.fix_type >= 3 and np.all(np.isfinite(p)):
+            self._map_loaded = False  # checked once, at GPS1's first 3D fix
+            d_m = float(np.hypot(p[0], p[1]))
+            if d_m > self.options.max_map_distance_m and self.filter is None:
+                refused = (f"map refused: its origin is {d_m / 1000:.1f} km from GPS1 (more than "
+                           f"{self.options.max_map_distance_m / 1000:g} km), a map of somewhere else; mapping afresh")
+                self.landmarks.clear()
+                self.frame = None
+                return self._on_gps1(rec) or refused
         t_meas = rec.t_s - self.options.gps1_lag_s  # when the receiver measured it
         est = self.filter.estimate_at(t_meas) if self.filter is not None else None
         sup = self.supervisor
@@ -226,6 +284,9 @@ class Estimator:
     def begin_frame(self, frame: Frame) -> FrameJob | FrameResult:
         """What the estimator knows at the frame's capture time; a "skipped" result when it cannot use the frame."""
         alt = self.alt_above_origin_m
+        if self.filter is None and self._attitudes and alt is not None and len(self.landmarks) and not self.supervisor.gps1_trusted:
+            # No filter, no GPS1, a map: locate without a prior, to start the filter (acquisition)
+            return FrameJob(frame, R_ned_body_from_euler(*self._attitude_at(frame.t_s)), alt, None, False, None)
         if self.filter is None or not self._attitudes or alt is None:
             missing = "filter (no GPS1 fix yet)" if self.filter is None else "attitude" if not self._attitudes else "height"
             return FrameResult(frame.t_s, "skipped", f"no {missing}")
@@ -262,6 +323,8 @@ class Estimator:
         common = dict(mapping=job.mapping, located=res, mapped=work.mapped, features=work.features)
         if not isinstance(res, Fix):
             return FrameResult(t, "none", res.reason, **common)
+        if self.filter is None:
+            return self._acquire(res, common)
         if job.mapping:
             est = self.filter.estimate_at(res.t_s)
             d = float(np.linalg.norm(res.p_ned_m[:2] - est.p_ned_m[:2]))
@@ -271,6 +334,25 @@ class Estimator:
         if decision.accepted:
             self.last_correction_t_s = max(res.t_s, self.last_correction_t_s or -np.inf)
         return FrameResult(t, "visual", decision.reason, decision=decision, **common)
+
+    def _acquire(self, fix: Fix, common: dict) -> FrameResult:
+        """Start the filter on a run of fixes located without a prior that lie on one track."""
+        fusion = self.cfg.fusion
+        run = [f for f in self._acquiring if f.t_s >= fix.t_s - fusion.reinit_window_s and f.t_s < fix.t_s] + [fix]
+        self._acquiring = run[-fusion.acquisition_fixes:]
+        track = track_through(self._acquiring, fusion.gate_chi2, fusion.acquisition_max_speed_m_s) \
+            if len(self._acquiring) == fusion.acquisition_fixes else None
+        if track is None:
+            reason = f"acquiring: {len(self._acquiring)} of {fusion.acquisition_fixes} fixes on one track"
+            return FrameResult(fix.t_s, "visual", reason, decision=GateDecision(fix.t_s, False, np.nan, reason), **common)
+        sigma_p = float(np.sqrt(np.linalg.eigvalsh(track.cov_p_m2).max()))
+        sigma_v = float(np.hypot(np.sqrt(np.linalg.eigvalsh(track.cov_v_m2_s2).max()), fusion.reinit_speed_sigma_m_s))
+        p = np.array([track.p_ne_m[0], track.p_ne_m[1], -self.alt_above_origin_m])
+        self.filter = NavFilter(fusion, track.t_s, p, np.array([track.v_ne_m_s[0], track.v_ne_m_s[1], 0.0]), sigma_p, sigma_v)
+        self._acquiring = []
+        self.last_correction_t_s = track.t_s
+        reason = f"acquired without a prior on {fusion.acquisition_fixes} fixes: filter started (sigma {sigma_p:.2f} m)"
+        return FrameResult(fix.t_s, "visual", reason, decision=GateDecision(fix.t_s, True, np.nan, reason), **common)
 
     def on_frame(self, frame: Frame) -> FrameResult:
         """A frame processed at once: :meth:`begin_frame`, :meth:`process_frame`, :meth:`finish_frame`."""

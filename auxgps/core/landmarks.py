@@ -198,6 +198,11 @@ class LandmarkMap:
     def __len__(self) -> int:
         return self._n
 
+    def clear(self) -> None:
+        """Forget every landmark (a map refused after loading); capacity is kept."""
+        self._n = 0
+        self.index.invalidate()
+
     @property
     def nbytes(self) -> int:
         """Bytes held per stored landmark times the count (capacity slack and index excluded)."""

@@ -63,6 +63,9 @@ _COLUMNS = {
 
 def _write(path: Path, meta: dict, arrays: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
+    # A process killed while writing leaves its temporary behind: the next write clears it.
+    for stale in path.parent.glob(path.name + ".*.tmp"):
+        stale.unlink(missing_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
@@ -73,6 +76,20 @@ def _write(path: Path, meta: dict, arrays: dict) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    _fsync_dir(path.parent)  # the rename itself on disk: a power cut after this keeps the new map
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return  # a platform that cannot open folders (Windows): the rename is as durable as it makes it
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def _origin(frame: LocalFrame) -> dict:
