@@ -133,6 +133,9 @@ class Companion:
                 self.recorder.finish(k)
             res = self.estimator.finish_frame(work)
         self.log.frame(res, self.estimator.frame)
+        if res.note:
+            self.log.event(res.t_s, res.note)
+            log.warning("%s", res.note)
         return res
 
     # -- map checkpoints (main thread, which alone changes the map) -----------------------------------------

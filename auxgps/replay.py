@@ -105,7 +105,10 @@ def replay(folder: str | Path, out_dir: str | Path, *, deny_gps_after_s: float |
             elif entry.call == "finish":
                 work = works.pop(entry.frame, None)
                 if work is not None:
-                    log.frame(est.finish_frame(work), est.frame)
+                    res = est.finish_frame(work)
+                    log.frame(res, est.frame)
+                    if res.note:
+                        log.event(res.t_s, res.note)
             else:
                 out = est.output(entry.t_s, entry.t_unix_s)
                 result.n_outputs += 1

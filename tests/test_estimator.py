@@ -174,3 +174,24 @@ def test_a_map_of_somewhere_else_is_refused_at_gps1s_first_fix():
     lat, lon, alt = map_frame.to_geodetic(np.array([30.0, 40.0, 0.0]))
     assert near.feed(Gps1(0.1, 3, 12, float(lat), float(lon), float(alt), 0.5)) is None
     assert len(near.landmarks) == 3 and near.frame == map_frame
+
+
+@pytest.mark.slow
+def test_a_frozen_camera_gives_no_fix_and_is_said_once(flight):
+    """The driver stalls from 18 to 21 s and repeats its last frame with fresh timestamps: no fix from the repeats,
+    one events line as it starts and one as it ends, and the reported accuracy grows meanwhile."""
+    world, events, _ = flight
+    frozen, stuck = [], None
+    for kind, e in events:
+        if kind == "frame" and 18.0 <= e.t_s < 21.0:
+            stuck = stuck if stuck is not None else e.image_bgr
+            e = Frame(e.t_s, stuck)
+        frozen.append((kind, e))
+    est, said = run(world, frozen)
+    results = [(e.t_s, r) for (kind, e), r in zip(frozen, said) if kind == "frame"]
+    repeats = [r for t, r in results if 18.2 <= t < 21.0]
+    assert repeats and all(r.kind == "none" and r.reason.startswith("frozen camera") for r in repeats)
+    notes = [r.note for _, r in results if r.note]
+    assert len(notes) == 2 and notes[0].startswith("camera fault: frozen camera") and notes[1].startswith("camera fault over"), notes
+    sigma = {round(o.t_s, 1): o.estimate.sigma_h_worst_m for (kind, _), o in zip(frozen, said) if kind == "output" and o.estimate}
+    assert sigma[20.9] > 2 * sigma[18.0]

@@ -37,6 +37,7 @@ from auxgps.config import PipelineConfig
 from auxgps.core.camera import camera_from_config
 from auxgps.core.events import Attitude, Frame, Gps1, Imu, Position
 from auxgps.core.features import FeatureDetector, Features
+from auxgps.core.frame_check import FrameCheck
 from auxgps.core.fusion import FusedEstimate, GateDecision, ImuSample, NavFilter
 from auxgps.core.geometry import LocalFrame, R_body_cam_from_mount, R_ned_body_from_euler
 from auxgps.core.gps_output import GpsOutput, gps_output
@@ -77,6 +78,7 @@ class FrameJob:
     prior: PositionPrior | None  # None: acquisition, no filter yet
     mapping: bool
     p_gps_ned_m: np.ndarray | None
+    speed_h_m_s: float | None = None  # the filter's horizontal speed at the capture (None: no filter)
 
 
 @dataclass(frozen=True)
@@ -87,6 +89,7 @@ class FrameWork:
     features: Features
     mapped: MappingResult | None
     located: Fix | NoFix
+    note: str | None = None  # a line for the events log: a camera fault began or ended, the frame rate fell
 
 
 @dataclass(frozen=True)
@@ -107,6 +110,7 @@ class FrameResult:
     self_check_m: float | None = None
     mapped: MappingResult | None = None
     features: Features | None = None
+    note: str | None = None  # a line for the events log (a camera fault began or ended, the frame rate fell)
 
 
 @dataclass(frozen=True)
@@ -190,6 +194,9 @@ class Estimator:
         self._last_disagreement: str | None = None
         self._map_loaded = landmarks is not None and len(landmarks) > 0  # not yet checked against GPS1
         self._acquiring: list[Fix] = []  # fixes located without a prior, while there is no filter
+        self.frame_check = FrameCheck()
+        self._frame_fault: str | None = None  # the camera fault in force (its kind), for the events log
+        self._last_checked_t_s: float | None = None
 
     # -- telemetry -----------------------------------------------------------------------------------------
 
@@ -294,12 +301,36 @@ class Estimator:
         mapping = self.supervisor.gps1_trusted
         # Where GPS1 puts the camera at the frame's time: the filter, which fuses GPS1 at its measurement time with
         # the IMU, interpolates between GPS1's readings and carries its lag.
-        p_gps = self.filter.estimate_at(frame.t_s).p_ned_m if mapping else None
-        return FrameJob(frame, R, alt, self.filter.prior(frame.t_s), mapping, p_gps)
+        est = self.filter.estimate_at(frame.t_s)
+        p_gps = est.p_ned_m if mapping else None
+        return FrameJob(frame, R, alt, PositionPrior(est.p_ned_m, est.sigma_h_worst_m), mapping, p_gps,
+                        float(np.hypot(est.v_ned_m_s[0], est.v_ned_m_s[1])))
+
+    def _check_frame(self, job: FrameJob) -> tuple[str | None, str | None]:
+        """The frame's fault (None: fit to locate from) and a line for the events log when a fault begins or ends
+        or the frame rate falls."""
+        t = job.frame.t_s
+        dt = t - self._last_checked_t_s if self._last_checked_t_s is not None else np.inf
+        self._last_checked_t_s = t
+        # Moved: by half a pixel's footprint at the image centre since the last frame (unknown speed: moved).
+        gsd_m = max(job.alt_above_origin_m, 1.0) / self.camera.focal_px
+        moved = job.speed_h_m_s is None or not np.isfinite(dt) or job.speed_h_m_s * dt >= 0.5 * gsd_m
+        fault = self.frame_check.check(t, job.frame.image_bgr, moved)
+        notes = [self.frame_check.rate_note(t)]
+        kind = fault.split(":")[0].split(" (")[0] if fault else None
+        if kind != self._frame_fault:
+            notes.append(f"camera fault: {fault}; no fix from such frames" if fault else f"camera fault over ({self._frame_fault})")
+            self._frame_fault = kind
+        return fault, "; ".join(n for n in notes if n) or None
 
     def process_frame(self, job: FrameJob) -> FrameWork:
-        """Detect, then map (while GPS1 is trusted) and locate. Reads and changes only the map and the frame."""
+        """Check the frame, detect, then map (while GPS1 is trusted) and locate. Reads and changes only the map,
+        the frame and the frame check's memory."""
         sw = self.stopwatch
+        fault, note = self._check_frame(job)
+        if fault is not None:
+            nothing = Features(np.zeros((0, 2)), np.zeros((0, self.landmarks.descriptors.shape[1]), np.uint8), np.zeros(0, int))
+            return FrameWork(job, nothing, None, NoFix(job.frame.t_s, fault), note)
         # Mapping frames keep full resolution; positioning frames from closer than the map are shrunk to its
         # scale. A positioning frame looks its candidate landmarks up once; a mapping frame's self-check after the
         # mapper has changed the map looks them up again.
@@ -314,13 +345,13 @@ class Estimator:
                 mapped = self.mapper.process(feats, NavSample(job.frame.t_s, job.p_gps_ned_m, job.alt_above_origin_m, job.R_ned_body))
         with sw("locating"):
             located = self.localiser.locate(feats, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior, cand)
-        return FrameWork(job, feats, mapped, located)
+        return FrameWork(job, feats, mapped, located, note)
 
     def finish_frame(self, work: FrameWork) -> FrameResult:
         """Fuse the frame's fix (positioning) or compare it with the filter (mapping)."""
         job, res = work.job, work.located
         t = job.frame.t_s
-        common = dict(mapping=job.mapping, located=res, mapped=work.mapped, features=work.features)
+        common = dict(mapping=job.mapping, located=res, mapped=work.mapped, features=work.features, note=work.note)
         if not isinstance(res, Fix):
             return FrameResult(t, "none", res.reason, **common)
         if self.filter is None:
