@@ -70,9 +70,15 @@ def summary_table(summary: dict) -> str:
 
 
 def _eval(args) -> int:
+    import dataclasses
+
     from auxgps.evaluation.driver import evaluate
+    from auxgps.sim.faults import load_fault_plan
     from auxgps.sim.flight import load_sim_config
 
+    sim = load_sim_config(args.sim_config)
+    if args.faults:
+        sim = dataclasses.replace(sim, faults=list(load_fault_plan(args.faults).faults))
     summary = evaluate(
         args.world,
         args.altitude,
@@ -81,11 +87,13 @@ def _eval(args) -> int:
         runs=args.runs,
         seed=args.seed,
         pipeline=load_pipeline_config(args.config),
-        sim=load_sim_config(args.sim_config),
+        sim=sim,
         workers=args.workers,
         progress=not args.quiet,
     )
     print(summary_table(summary))
+    for t_s, line in summary["notes"][:40]:
+        print(f"  {t_s:7.2f} s  {line}")
     _write_json(args.json, summary)
     return 0
 
@@ -458,6 +466,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--world", required=True, help="a world by name (one_cube_1m, cubes4_0.5m_different, ...) or a world YAML file")
     p.add_argument("--altitude", type=_positive(float), required=True, help="survey height above ground, m")
     p.add_argument("--runs", type=_positive(int), default=1, help="seeded runs (default 1)")
+    p.add_argument("--faults", help="a YAML list of faults to inject into the positioning flight (auxgps/sim/faults.py; "
+                                    "config/faults/all.yaml has one of each)")
     add_eval_options(p)
     p.set_defaults(func=_eval)
 

@@ -126,12 +126,13 @@ class Companion:
             k = self.recorder.begin(frame) if self.recorder is not None else None
             job = self.estimator.begin_frame(frame)
         if isinstance(job, FrameResult):
-            return job
-        work = self.estimator.process_frame(job)  # slow: detection, mapping, locating; the map is this thread's
-        with self._lock:
-            if self.recorder is not None:
-                self.recorder.finish(k)
-            res = self.estimator.finish_frame(work)
+            res = job
+        else:
+            work = self.estimator.process_frame(job)  # slow: detection, mapping, locating; the map is this thread's
+            with self._lock:
+                if self.recorder is not None:
+                    self.recorder.finish(k)
+                res = self.estimator.finish_frame(work)
         self.log.frame(res, self.estimator.frame)
         if res.note:
             self.log.event(res.t_s, res.note)

@@ -100,6 +100,8 @@ def replay(folder: str | Path, out_dir: str | Path, *, deny_gps_after_s: float |
                 result.n_frames += 1
                 if isinstance(job, FrameResult):
                     log.frame(job, est.frame)
+                    if job.note:
+                        log.event(job.t_s, job.note)
                 else:
                     works[entry.frame] = est.process_frame(job)
             elif entry.call == "finish":

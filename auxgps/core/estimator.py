@@ -61,6 +61,8 @@ class EstimatorOptions:
     gps_delay_s: float = 0.1
     gps1_lag_s: float = 0.1
     max_map_distance_m: float = 5000.0  # a loaded map's origin this far from GPS1's first fix is of somewhere else
+    max_attitude_age_s: float = 0.2  # no fix from a frame, no IMU integration, without an attitude this recent
+    height_stuck_s: float = 2.0  # a height above home that repeats one value this long is stuck: not fused
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
 
 
@@ -195,6 +197,11 @@ class Estimator:
         self._map_loaded = landmarks is not None and len(landmarks) > 0  # not yet checked against GPS1
         self._acquiring: list[Fix] = []  # fixes located without a prior, while there is no filter
         self.frame_check = FrameCheck()
+        self._last_t_of: dict[type, float] = {}  # the newest time of each telemetry kind (duplicates, order)
+        self._telemetry_fault_t: dict[str, float] = {}  # fault -> when last seen, for one events line per episode
+        self._height_same_since: tuple[float, float] | None = None  # (value, since when) of a repeating height
+        self._attitude_lost = False
+        self._pending_note: str | None = None  # said with the next finished frame
         self._frame_fault: str | None = None  # the camera fault in force (its kind), for the events log
         self._last_checked_t_s: float | None = None
 
@@ -202,10 +209,22 @@ class Estimator:
 
     def feed(self, event) -> str | None:
         """Take one telemetry record; return a line for the events log when it says something new (a GPS1
-        disagreement), else None. Records of other kinds are ignored."""
-        if isinstance(event, Imu):
+        disagreement, a telemetry fault beginning), else None. Records of other kinds are ignored.
+
+        A record with the same kind and time as the newest of its kind is a duplicate (dropped); an IMU sample
+        older than the newest cannot be integrated (dropped); either is said once per episode."""
+        kind = type(event)
+        if kind not in (Imu, Attitude, Position, Gps1):
+            return None
+        t_last = self._last_t_of.get(kind)
+        if t_last is not None and event.t_s == t_last:
+            return self._telemetry_fault("duplicated telemetry: repeats dropped", event.t_s)
+        if kind is Imu and t_last is not None and event.t_s < t_last:
+            return self._telemetry_fault("telemetry out of time order: late IMU samples dropped", event.t_s)
+        self._last_t_of[kind] = max(event.t_s, t_last if t_last is not None else -np.inf)
+        if kind is Imu:
             self._on_imu(event)
-        elif isinstance(event, Attitude):
+        elif kind is Attitude:
             atts = self._attitudes
             if atts and event.t_s < atts[-1].t_s:  # out of time order (a clock step): kept in order
                 if len(atts) == atts.maxlen:
@@ -213,11 +232,17 @@ class Estimator:
                 atts.insert(bisect.bisect_right(atts, event.t_s, key=lambda a: a.t_s), event)
             else:
                 atts.append(event)
-        elif isinstance(event, Position):
-            self._on_position(event)
-        elif isinstance(event, Gps1):
+        elif kind is Position:
+            return self._on_position(event)
+        else:
             return self._on_gps1(event)
         return None
+
+    def _telemetry_fault(self, what: str, t_s: float, episode_gap_s: float = 5.0) -> str | None:
+        """``what`` for the events log when it begins an episode (not seen for ``episode_gap_s``), else None."""
+        last = self._telemetry_fault_t.get(what)
+        self._telemetry_fault_t[what] = t_s
+        return what if last is None or abs(t_s - last) > episode_gap_s else None
 
     @property
     def alt_above_origin_m(self) -> float | None:
@@ -227,17 +252,35 @@ class Estimator:
         return self._alt_above_home_m + self._home_above_origin_m
 
     def _on_imu(self, rec: Imu) -> None:
-        if self.filter is not None and self._attitudes:
+        # Without a recent attitude, a sample cannot be rotated into NED: it is not integrated, and the filter
+        # crosses the gap at constant velocity with its covariance loosened when samples are usable again.
+        if self.filter is not None and self._attitude_age_s(rec.t_s) <= self.options.max_attitude_age_s:
             R = R_ned_body_from_euler(*self._attitude_at(rec.t_s))
             self.filter.propagate(ImuSample(rec.t_s, rec.f_body_m_s2, R))
 
-    def _on_position(self, rec: Position) -> None:
+    def _attitude_age_s(self, t_s: float) -> float:
+        """How far the nearest attitude sample is from ``t_s``, s (inf without one)."""
+        if not self._attitudes:
+            return np.inf
+        k = bisect.bisect_left(self._attitudes, t_s, key=lambda a: a.t_s)
+        near = [abs(self._attitudes[j].t_s - t_s) for j in (k - 1, k) if 0 <= j < len(self._attitudes)]
+        return min(near)
+
+    def _on_position(self, rec: Position) -> str | None:
         if not np.isfinite(rec.alt_above_home_m):
-            return
+            return None
+        same = self._height_same_since
+        if same is not None and rec.alt_above_home_m == same[0]:
+            if rec.t_s - same[1] >= self.options.height_stuck_s:
+                return self._telemetry_fault(f"height above home stuck at {same[0]:.2f} m for "
+                                             f"{self.options.height_stuck_s:g} s: not fused", rec.t_s)
+        else:
+            self._height_same_since = (rec.alt_above_home_m, rec.t_s)
         self._alt_above_home_m = rec.alt_above_home_m
         alt = self.alt_above_origin_m
         if self.filter is not None and alt is not None:
             self.filter.update_altitude(rec.t_s, alt, self.cfg.noise.altitude_m)
+        return None
 
     def _on_gps1(self, rec: Gps1) -> str | None:
         if self.frame is None:
@@ -289,8 +332,21 @@ class Estimator:
     # -- frames --------------------------------------------------------------------------------------------
 
     def begin_frame(self, frame: Frame) -> FrameJob | FrameResult:
-        """What the estimator knows at the frame's capture time; a "skipped" result when it cannot use the frame."""
+        """What the estimator knows at the frame's capture time; a "skipped" result when it cannot use the frame,
+        a "none" one when its attitude is missing."""
         alt = self.alt_above_origin_m
+        rate = self.frame_check.rate_note(frame.t_s)
+        if rate:
+            self._pending_note = "; ".join(n for n in (self._pending_note, rate) if n)
+        age = self._attitude_age_s(frame.t_s)
+        if self._attitudes and age > self.options.max_attitude_age_s:
+            note = None if self._attitude_lost else "attitude stream stopped: no fix until it is back"
+            self._attitude_lost = True
+            return FrameResult(frame.t_s, "none", f"no attitude within {self.options.max_attitude_age_s:g} s of the frame "
+                               f"(nearest {age:.1f} s away)", note=note)
+        if self._attitude_lost and self._attitudes:
+            self._attitude_lost = False
+            self._pending_note = "; ".join(n for n in (self._pending_note, "attitude stream back") if n)
         if self.filter is None and self._attitudes and alt is not None and len(self.landmarks) and not self.supervisor.gps1_trusted:
             # No filter, no GPS1, a map: locate without a prior, to start the filter (acquisition)
             return FrameJob(frame, R_ned_body_from_euler(*self._attitude_at(frame.t_s)), alt, None, False, None)
@@ -316,7 +372,7 @@ class Estimator:
         gsd_m = max(job.alt_above_origin_m, 1.0) / self.camera.focal_px
         moved = job.speed_h_m_s is None or not np.isfinite(dt) or job.speed_h_m_s * dt >= 0.5 * gsd_m
         fault = self.frame_check.check(t, job.frame.image_bgr, moved)
-        notes = [self.frame_check.rate_note(t)]
+        notes = []
         kind = fault.split(":")[0].split(" (")[0] if fault else None
         if kind != self._frame_fault:
             notes.append(f"camera fault: {fault}; no fix from such frames" if fault else f"camera fault over ({self._frame_fault})")
@@ -351,7 +407,9 @@ class Estimator:
         """Fuse the frame's fix (positioning) or compare it with the filter (mapping)."""
         job, res = work.job, work.located
         t = job.frame.t_s
-        common = dict(mapping=job.mapping, located=res, mapped=work.mapped, features=work.features, note=work.note)
+        note = "; ".join(n for n in (self._pending_note, work.note) if n) or None
+        self._pending_note = None
+        common = dict(mapping=job.mapping, located=res, mapped=work.mapped, features=work.features, note=note)
         if not isinstance(res, Fix):
             return FrameResult(t, "none", res.reason, **common)
         if self.filter is None:

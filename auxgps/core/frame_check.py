@@ -39,7 +39,7 @@ class FrameCheckConfig:
     max_saturated_share: float = 0.4
     min_sharpness: float = 2.6  # sharp frames: 6 to 15 (rendered worlds, the Brighton and Seneca photos); Gaussian blur of 3 px: under 2.3
     min_edge_energy: float = 1.0  # mean squared Laplacian (grey levels^2) below which blur is not judged
-    slow_factor: float = 4.0
+    slow_factor: float = 3.0
 
 
 class FrameCheck:

@@ -213,7 +213,11 @@ class NavFilter:
         step = self._history[max(k, 0)]
         t_k, x, P = step.t_state_s, step.x[:, 0], step.P
         dt = t_s - t_k
-        return FusedEstimate(t_s, x[:3] + x[3:6] * dt, x[3:6].copy(), P[:3, :3] + P[3:6, 3:6] * dt * dt, P[3:6, 3:6].copy())
+        P_p, P_v = P[:3, :3] + P[3:6, 3:6] * dt * dt, P[3:6, 3:6].copy()
+        if dt > self.cfg.max_imu_gap_s:  # no IMU this long (a link outage, no attitude): an unknown acceleration too
+            a2 = self.cfg.imu_gap_accel_sigma_m_s2**2
+            P_p, P_v = P_p + _EYE3 * a2 * dt**4 / 4.0, P_v + _EYE3 * a2 * dt * dt
+        return FusedEstimate(t_s, x[:3] + x[3:6] * dt, x[3:6].copy(), P_p, P_v)
 
     def prior(self, t_s: float | None = None) -> PositionPrior:
         """Where the vehicle is at ``t_s`` (default: the state's time), for the localiser's search."""

@@ -181,4 +181,6 @@ def _summarize_pooled(records: list[RunRecord]) -> dict:
         },
         "features_per_frame_median": float(np.median(n_feat)) if len(n_feat) else None,
         "no_fix_reasons": reasons,
+        # What the estimator said for the events log in the positioning flight (the first run's, with times).
+        "notes": [[round(t, 2), line] for t, line in (records[0].notes if records else [])],
     }

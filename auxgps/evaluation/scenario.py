@@ -17,6 +17,7 @@ from auxgps.core.camera import CameraPose, PinholeCamera, camera_from_config
 from auxgps.core.estimator import Estimator, EstimatorOptions, FrameResult
 from auxgps.core.events import Frame
 from auxgps.core.geometry import R_body_cam_from_mount
+from auxgps.sim.faults import FaultInjector, FaultPlan
 from auxgps.sim.flight import SimConfig, fly, imu_bias, lawnmower_waypoints
 from auxgps.sim.sensors import Sensors
 from auxgps.sim.render import Renderer
@@ -51,6 +52,7 @@ class RunRecord:
     positioning_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     features_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0))
     no_fix_reasons: dict[str, int] = field(default_factory=dict)
+    notes: list[tuple[float, str]] = field(default_factory=list)  # the positioning flight's events-log lines (t, line)
 
     @property
     def fix_accepted(self) -> np.ndarray:
@@ -115,10 +117,13 @@ class _Seen:
 
 
 def _fly(est: Estimator, su: _Setup, traj, sensors: Sensors, fps: float, *, latency_s: float, on_frame, on_output=None,
-         blackout: tuple[float, float] | None = None, progress=None) -> None:
+         blackout: tuple[float, float] | None = None, faults: FaultInjector | None = None, notes: list | None = None,
+         progress=None) -> None:
     """Feed one trajectory to ``est`` as a companion would: telemetry as it comes, each frame begun at its capture
     and finished ``latency_s`` later (its processing time on a vehicle), GPS_INPUT asked for at the output rate.
-    ``on_frame(_Seen)`` and ``on_output(i, Output)`` are the evaluator's: only they see the truth."""
+    ``on_frame(_Seen)`` and ``on_output(i, Output)`` are the evaluator's: only they see the truth. ``faults``
+    changes what the estimator is given (frames and telemetry), never the truth; ``notes`` collects the lines
+    the estimator has for the events log, with their times."""
     dt = traj.t_s[1] - traj.t_s[0]
     frame_every = max(1, int(round(1.0 / (fps * dt))))
     out_every = max(1, int(round(1.0 / (su.pipeline.fusion.output_rate_hz * dt))))
@@ -128,12 +133,17 @@ def _fly(est: Estimator, su: _Setup, traj, sensors: Sensors, fps: float, *, late
         _, work, i, rendered, blinded, ms = item
         t0 = time.perf_counter()
         res = est.finish_frame(work)
+        if res.note and notes is not None:
+            notes.append((res.t_s, res.note))
         on_frame(_Seen(i, res, rendered, blinded, ms + (time.perf_counter() - t0) * 1e3))
 
     for i in range(len(traj.t_s)):
         t = float(traj.t_s[i])
-        for event in sensors.events_at(i):
-            est.feed(event)
+        events = sensors.events_at(i)
+        for event in (faults.events(t, events) if faults is not None else events):
+            note = est.feed(event)
+            if note and notes is not None:
+                notes.append((t, note))
         while pending and pending[0][0] <= t + 1e-9:
             finish(pending.pop(0))
         if i % frame_every == 0:
@@ -142,13 +152,18 @@ def _fly(est: Estimator, su: _Setup, traj, sensors: Sensors, fps: float, *, late
             blinded = blackout is not None and blackout[0] <= t < blackout[1]
             if blinded:
                 image = np.zeros_like(image)  # the camera is blinded
-            t0 = time.perf_counter()
-            job = est.begin_frame(Frame(t, image))
-            if isinstance(job, FrameResult):
-                on_frame(_Seen(i, job, rendered, blinded, (time.perf_counter() - t0) * 1e3))
-            else:
-                work = est.process_frame(job)
-                pending.append((t + latency_s, work, i, rendered, blinded, (time.perf_counter() - t0) * 1e3))
+            if faults is not None:
+                image = faults.frame(t, image)  # None: the camera delivered no frame
+            if image is not None:
+                t0 = time.perf_counter()
+                job = est.begin_frame(Frame(t, image))
+                if isinstance(job, FrameResult):
+                    if job.note and notes is not None:
+                        notes.append((job.t_s, job.note))
+                    on_frame(_Seen(i, job, rendered, blinded, (time.perf_counter() - t0) * 1e3))
+                else:
+                    work = est.process_frame(job)
+                    pending.append((t + latency_s, work, i, rendered, blinded, (time.perf_counter() - t0) * 1e3))
             if progress is not None:
                 progress()
         if on_output is not None and i % out_every == 0:
@@ -223,7 +238,7 @@ def run_once(
         if res.kind == "skipped" or res.mapping or t_capture < denied_from:
             return
         pos_ms.append(seen.ms)
-        n_feat.append(len(res.features))
+        n_feat.append(len(res.features) if res.features is not None else 0)
         eligible = _cube_fully_in_view(world, su.camera, seen.rendered.pose) and not seen.blinded
         counts["frames"] += 1
         counts["eligible"] += eligible
@@ -247,8 +262,10 @@ def run_once(
         fused_vel_err.append(out.estimate.v_ned_m_s[:2] - traj.v_ned_m_s[k, :2])
 
     sensors = su.sensors(traj, imu_bias(sim.noise, su.rng_imu), denied_from_s=denied_from)
+    notes: list[tuple[float, str]] = []
+    faults = FaultInjector(FaultPlan(list(sim.faults))) if sim.faults else None
     _fly(est, su, traj, sensors, fps, latency_s=den.fix_latency_s, on_frame=on_frame, on_output=on_output, blackout=blackout,
-         progress=progress)
+         faults=faults, notes=notes, progress=progress)
     # A fix captured in the flight's last moments never reaches the filter.
     t_end = float(traj.t_s[-1])
     fix_applied = [t if t <= t_end + 1e-9 else np.nan for t in fix_applied]
@@ -277,4 +294,5 @@ def run_once(
         positioning_ms=np.array(pos_ms),
         features_per_frame=np.array(n_feat),
         no_fix_reasons=reasons,
+        notes=notes,
     )

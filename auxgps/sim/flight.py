@@ -16,6 +16,7 @@ from pydantic.dataclasses import dataclass as config_dataclass
 
 from auxgps.config import _STRICT, NonNegative, Positive, parse_as, read_yaml
 from auxgps.core.geometry import R_ned_body_from_euler, euler_from_R_ned_body
+from auxgps.sim.faults import Fault
 from auxgps.sim.render import ImageEffects
 
 GRAVITY_M_S2 = 9.80665
@@ -94,6 +95,8 @@ class SimConfig:
     effects: EffectsConfig = Field(default_factory=EffectsConfig)
     denial: DenialConfig = Field(default_factory=DenialConfig)
     dt_s: Annotated[float, Field(gt=0, le=0.1)] = 0.01
+    # Faults injected into the positioning flight (auxgps.sim.faults; `auxgps eval --faults FILE`)
+    faults: list[Fault] = Field(default_factory=list)
 
     def image_effects(self) -> ImageEffects:
         return ImageEffects(self.effects.noise_sigma, self.effects.blur_sigma_px, self.effects.exposure_gain)

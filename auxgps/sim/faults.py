@@ -1,0 +1,111 @@
+"""Faults injected into a simulated flight: a YAML list anyone can write, applied to the frames and telemetry the
+estimator is given (never to the truth the evaluator scores against).
+
+A fault file (``auxgps eval --faults FILE``)::
+
+    faults:
+      - {kind: camera_frozen, at_s: 40, for_s: 3}       # the driver repeats its last frame, fresh timestamps
+      - {kind: camera_dark_half, at_s: 60, for_s: 3}    # a strap over half the lens
+      - {kind: camera_saturated, at_s: 80, for_s: 3}    # the sun: half the image white
+      - {kind: camera_blur, at_s: 100, for_s: 3, blur_sigma_px: 4}
+      - {kind: camera_slow, at_s: 120, for_s: 5, fps: 1}  # the frame rate collapses
+      - {kind: attitude_stops, at_s: 140, for_s: 3}     # no ATTITUDE
+      - {kind: height_stuck, at_s: 160, for_s: 5}       # the height above home repeats one value
+      - {kind: telemetry_duplicated, at_s: 180, for_s: 3}  # every message twice
+      - {kind: telemetry_reordered, at_s: 200, for_s: 3}   # each step's messages after the next step's
+
+``at_s`` is on the positioning flight's clock (GPS1 is lost at ``denial.gps_until_s``), ``for_s`` how long it lasts.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+from pydantic.dataclasses import dataclass as config_dataclass
+
+from auxgps.config import _STRICT, NonNegative, Positive, parse_as, read_yaml
+from auxgps.core.events import Attitude, Position
+
+Kind = Literal["camera_frozen", "camera_dark_half", "camera_saturated", "camera_blur", "camera_slow", "attitude_stops",
+               "height_stuck", "telemetry_duplicated", "telemetry_reordered"]
+
+
+@config_dataclass(config=_STRICT, frozen=True)
+class Fault:
+    kind: Kind
+    at_s: NonNegative
+    for_s: Positive
+    blur_sigma_px: Positive = 4.0  # camera_blur
+    fps: Annotated[float, Field(gt=0, le=100)] = 1.0  # camera_slow
+
+    def active(self, t_s: float) -> bool:
+        return self.at_s <= t_s < self.at_s + self.for_s
+
+
+@config_dataclass(config=_STRICT, frozen=True)
+class FaultPlan:
+    faults: list[Fault] = Field(default_factory=list)
+
+
+def load_fault_plan(path) -> FaultPlan:
+    return parse_as(FaultPlan, read_yaml(path), path)
+
+
+class FaultInjector:
+    """Applies a :class:`FaultPlan` to one flight's frames (:meth:`frame`) and telemetry (:meth:`events`)."""
+
+    def __init__(self, plan: FaultPlan) -> None:
+        self.faults = list(plan.faults)
+        self._held_image: dict[int, np.ndarray] = {}  # camera_frozen: the frame the driver repeats
+        self._last_passed_t: dict[int, float] = {}  # camera_slow
+        self._stuck_alt: dict[int, float] = {}  # height_stuck
+        self._held_events: list = []  # telemetry_reordered
+
+    def frame(self, t_s: float, image_bgr: np.ndarray) -> np.ndarray | None:
+        """The image the estimator gets at ``t_s`` (None: the camera delivered no frame)."""
+        for k, f in enumerate(self.faults):
+            if not f.active(t_s):
+                continue
+            if f.kind == "camera_frozen":
+                image_bgr = self._held_image.setdefault(k, image_bgr)
+            elif f.kind == "camera_dark_half":
+                image_bgr = image_bgr.copy()
+                image_bgr[:, : image_bgr.shape[1] // 2] = 0
+            elif f.kind == "camera_saturated":
+                image_bgr = image_bgr.copy()
+                image_bgr[:, : image_bgr.shape[1] // 2] = 255
+            elif f.kind == "camera_blur":
+                image_bgr = cv2.GaussianBlur(image_bgr, (0, 0), f.blur_sigma_px)
+            elif f.kind == "camera_slow":
+                last = self._last_passed_t.get(k)
+                if last is not None and t_s - last < 1.0 / f.fps - 1e-9:
+                    return None
+                self._last_passed_t[k] = t_s
+        return image_bgr
+
+    def events(self, t_s: float, events: list) -> list:
+        """The telemetry the estimator gets at simulation time ``t_s`` in place of ``events``."""
+        out = list(events)
+        for k, f in enumerate(self.faults):
+            if f.kind == "attitude_stops" and f.active(t_s):
+                out = [e for e in out if not isinstance(e, Attitude)]
+            elif f.kind == "height_stuck" and f.active(t_s):
+                out = [self._stuck(k, e) if isinstance(e, Position) else e for e in out]
+            elif f.kind == "telemetry_duplicated" and f.active(t_s):
+                out = [e for e in out for _ in (0, 1)]
+        reorder = any(f.kind == "telemetry_reordered" and f.active(t_s) for f in self.faults)
+        if reorder:
+            if not self._held_events:
+                self._held_events, out = out, []
+            else:
+                out, self._held_events = out + self._held_events, []
+        elif self._held_events:
+            out, self._held_events = self._held_events + out, []
+        return out
+
+    def _stuck(self, k: int, e: Position) -> Position:
+        alt = self._stuck_alt.setdefault(k, e.alt_above_home_m)
+        return Position(e.t_s, e.lat_deg, e.lon_deg, e.alt_amsl_m, alt)
