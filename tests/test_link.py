@@ -85,3 +85,14 @@ def test_boot_clock_follows_an_autopilot_clock_that_runs_slow():
     mapped = [clock.to_local(int(round(t * 0.9 * 1000)), t) for t in arrivals]
     lag_s = arrivals - np.array(mapped)
     assert np.all(lag_s >= -1e-9) and lag_s.max() <= 0.1 * 2.0 + 0.02  # at most the drift over one window
+
+
+def test_boot_clock_starts_afresh_when_the_autopilot_reboots():
+    """300 s into the flight the autopilot restarts (its boot clock back to 0.5 s): the next messages are stamped
+    at their arrival, not 300 s in the past for the window's length."""
+    clock = BootClock(window_s=2.0)
+    for t in np.arange(0.0, 300.0, 0.02):
+        clock.to_local(int(round(t * 1000)) + 5000, t + 0.001)
+    after = [clock.to_local(int(round(dt * 1000)) + 500, 300.0 + dt + 0.001) for dt in np.arange(0.0, 3.0, 0.02)]
+    assert clock.reboots == 1
+    np.testing.assert_allclose(after, 300.0 + np.arange(0.0, 3.0, 0.02) + 0.001, atol=0.002)

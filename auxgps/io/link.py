@@ -63,8 +63,18 @@ class BootClock:
     def __init__(self, window_s: float = 2.0) -> None:
         self.window_s = window_s
         self._recent: deque = deque()  # (arrival_s, offset_s), offsets increasing from the left
+        self._newest_boot_ms = -np.inf
+        self.reboots = 0  # times the boot clock went back by more than a second: the autopilot restarted
 
     def to_local(self, time_boot_ms: int, arrival_s: float) -> float:
+        if time_boot_ms < self._newest_boot_ms - 1000:
+            # The autopilot rebooted: the old offset says nothing of the new boot clock (kept, it would stamp the
+            # next window_s of messages its uptime in the past).
+            self._recent.clear()
+            self.reboots += 1
+            log.warning("autopilot boot clock went back from %.1f to %.1f s: rebooted", self._newest_boot_ms / 1000, time_boot_ms / 1000)
+            self._newest_boot_ms = -np.inf
+        self._newest_boot_ms = max(self._newest_boot_ms, time_boot_ms)
         offset = arrival_s - time_boot_ms / 1000.0
         recent = self._recent
         while recent and recent[-1][1] >= offset:
