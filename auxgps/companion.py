@@ -68,6 +68,7 @@ class Companion:
         self._checkpoint_wanted = threading.Event()  # a mode change asks the frame thread for a checkpoint
         self._last_checkpoint_s = time.monotonic()
         self.checkpoints = 0
+        self._dropped_said = (time.monotonic(), 0)  # (when, the camera's dropped count then)
 
     # -- messages from the autopilot (reader thread) --------------------------------------------------------
 
@@ -158,6 +159,20 @@ class Companion:
         log.info("map of %d landmarks saved to %s (%s, %.0f ms)", len(est.landmarks), self.opts.map_out, why,
                  (time.monotonic() - t0) * 1e3)
 
+    def _say_dropped_frames(self, every_s: float = 10.0) -> None:
+        """Every ``every_s``, how many frames the camera delivered that the frame loop never took (a live source
+        keeps only the newest: processing slower than the camera drops the older ones, it never queues them)."""
+        t_said, n_said = self._dropped_said
+        now = time.monotonic()
+        if now - t_said < every_s:
+            return
+        n = getattr(self.camera, "dropped", 0)
+        self._dropped_said = (now, n)
+        if n > n_said:
+            line = f"camera: {n - n_said} frames dropped in {now - t_said:.0f} s, processing slower than the camera (the newest is kept)"
+            self.log.event(now, line)
+            log.info("%s", line)
+
     def _checkpoint_if_due(self) -> None:
         if self._checkpoint_wanted.is_set():
             self._checkpoint_wanted.clear()
@@ -176,6 +191,7 @@ class Companion:
                 if self.link.failure is not None:
                     raise LinkError(f"the link's reader stopped: {type(self.link.failure).__name__}: {self.link.failure}")
                 self._checkpoint_if_due()
+                self._say_dropped_frames()
                 frame = self.camera.read()
                 if frame is None:
                     time.sleep(0.005)

@@ -65,3 +65,50 @@ def test_frames_of_another_size_than_the_camera_model_are_one_named_error(tmp_pa
 def test_a_source_that_cannot_be_opened_is_named(spec, names):
     with pytest.raises(ConfigError, match=names):
         open_camera(spec, CAMERA, R_BODY_CAM_DOWN)
+
+
+def test_a_live_camera_faster_than_the_frame_loop_gives_the_newest_frame_and_counts_the_rest(monkeypatch):
+    """A camera at 200 frames a second with a driver queue, a frame loop taking 50 ms a frame: each frame read is
+    the newest, stamped within a few ms of its capture (read straight from the queue, it would be ever older and
+    stamped late), and the frames never read are counted."""
+    import time
+
+    import cv2
+
+    from auxgps.io.camera import CaptureCamera
+
+    class QueuedCamera:
+        """Frame n is captured at t0 + n / 200 s and waits in the driver's queue until read."""
+
+        def __init__(self, *args):
+            self.t0, self.n, self.captured_s = time.monotonic(), 0, {}
+
+        def isOpened(self):
+            return True
+
+        def get(self, prop):
+            return 200.0
+
+        def read(self):
+            self.n += 1
+            t = self.t0 + self.n / 200.0
+            time.sleep(max(0.0, t - time.monotonic()))
+            self.captured_s[self.n % 256] = t
+            return True, np.full((48, 64, 3), self.n % 256, np.uint8)
+
+        def release(self):
+            pass
+
+    monkeypatch.setattr(cv2, "VideoCapture", QueuedCamera)
+    cam = CaptureCamera(0, live=True, size=(64, 48))
+    try:
+        stamp_errors = []
+        for _ in range(10):
+            frame = cam.read(timeout_s=1.0)
+            assert frame is not None
+            stamp_errors.append(frame.t_s - cam.cap.captured_s[int(frame.image_bgr[0, 0, 0])])
+            time.sleep(0.05)  # processing
+    finally:
+        cam.close()
+    assert max(stamp_errors) < 0.02, stamp_errors
+    assert cam.dropped >= 50  # about 9 of every 10 frames

@@ -8,6 +8,7 @@ skipped, never raised; a source whose frames do not match the camera model is on
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from pathlib import Path
 from typing import Callable
@@ -59,7 +60,10 @@ class SimCamera:
 class CaptureCamera:
     """A camera device (an index, a V4L2 path), a GStreamer or RTSP pipeline, or a video file, through OpenCV.
 
-    A live source's frames are stamped with the monotonic clock when read; a file's at its frame rate from the
+    A live source is read by a thread of its own as fast as it delivers, each frame stamped with the monotonic
+    clock as it arrives, and only the newest is kept: a frame loop slower than the camera gets the newest frame,
+    never one that waited in the driver's queue (stamped late, it would be a fix at the wrong time).
+    ``dropped`` counts the frames never read. A file's frames are read in turn, stamped at its frame rate from the
     start. ``size`` (width, height): what the camera model expects; a source giving other frames is a
     :class:`ConfigError` at its first frame, not frames read with the wrong geometry.
     """
@@ -76,24 +80,69 @@ class CaptureCamera:
         self._t0 = time.monotonic()
         self._n = 0
         self._checked = False
+        self.dropped = 0
+        self._newest: tuple[float, np.ndarray] | None = None
+        self._error: ConfigError | None = None
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._grabber = None
+        if live:
+            self._grabber = threading.Thread(target=self._grab, daemon=True, name="camera")
+            self._grabber.start()
 
-    def read(self) -> Frame | None:
-        ok, image = self.cap.read()
-        t = time.monotonic()
-        if not ok or image is None or image.ndim != 3 or image.dtype != np.uint8:
-            if not ok and not self.live:
-                return None  # end of file
+    def _check(self, image) -> bool:
+        if image is None or image.ndim != 3 or image.dtype != np.uint8:
             log.warning("camera %r: unreadable frame skipped", self.source)
-            return None
+            return False
         if not self._checked and self.size is not None:
             self._checked = True
             if (image.shape[1], image.shape[0]) != tuple(self.size):
                 raise ConfigError(f"camera {self.source!r} gives {image.shape[1]}x{image.shape[0]} px frames, the camera model is "
                                   f"{self.size[0]}x{self.size[1]}: calibrate it (auxgps camera calibrate) or set the camera's size")
+        return True
+
+    def _grab(self) -> None:
+        while not self._stop.is_set():
+            ok, image = self.cap.read()
+            t = time.monotonic()
+            if not ok:
+                log.warning("camera %r: no frame", self.source)
+                time.sleep(0.01)
+                continue
+            try:
+                if not self._check(image):
+                    continue
+            except ConfigError as err:
+                with self._cond:
+                    self._error = err
+                return
+            with self._cond:
+                if self._newest is not None:
+                    self.dropped += 1
+                self._newest = (t, image)
+                self._cond.notify()
+
+    def read(self, timeout_s: float = 0.05) -> Frame | None:
+        if self.live:
+            with self._cond:
+                if self._newest is None and self._error is None:
+                    self._cond.wait(timeout_s)
+                if self._error is not None:
+                    raise self._error
+                newest, self._newest = self._newest, None
+            return Frame(*newest) if newest is not None else None
+        ok, image = self.cap.read()
+        if not ok:
+            return None  # end of file
+        if not self._check(image):
+            return None
         self._n += 1
-        return Frame(t if self.live else self._t0 + self._n / self.fps, image)
+        return Frame(self._t0 + self._n / self.fps, image)
 
     def close(self) -> None:
+        self._stop.set()
+        if self._grabber is not None:
+            self._grabber.join(timeout=1.0)
         self.cap.release()
 
 
