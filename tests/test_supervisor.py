@@ -86,3 +86,30 @@ def test_gps1_rejoins_at_once_when_auxgps_has_no_position_of_its_own():
     s.gps1(good(1.4), P, np.diag([0.5, 2.5**2]))  # 2.5 m along its worst axis: trust GPS1 now
     assert s.gps1_trusted
     assert "no position of its own" in s.decide(1.5, sigma_h_worst_m=2.5, last_correction_t_s=1.4).status
+
+
+def test_a_gps1_dragged_away_from_the_map_is_distrusted_and_rejoins_only_on_a_tight_agreement():
+    """Self-checks (fix on the map minus the filter, which follows GPS1) of 0.1 m noise, then a drag of 0.5 m/s:
+    found as the mean of 3 passes 0.5 m; then GPS1 within 2 m of a loose estimate does not rejoin, and rejoins
+    only after agreeing for rejoin_s with an estimate tighter than drag_m."""
+    rng = np.random.default_rng(1)
+    s = Supervisor()
+    s.gps1(good(0.0), None, None)
+    cov = np.eye(2) * 0.1**2
+    found = None
+    for k in range(200):
+        t = 0.5 * k
+        drag = max(0.0, t - 60.0) * 0.5
+        line = s.visual_check(t, np.array([drag, 0.0]) * -1 + rng.normal(0, 0.1, 2), cov)
+        if line:
+            found = t
+            break
+    assert found is not None and 60.0 < found <= 62.5 and not s.gps1_trusted and "GPS1 drifts" in line
+    # Lost meanwhile (own sigma 1 m): GPS1 0.8 m off agrees within 2 m and within 3.7 sigma, but must not rejoin
+    for k in range(30):
+        s.gps1(good(70.0 + k, P + np.array([0.8, 0.0, 0.0])), P, np.eye(2) * 1.0)
+    assert not s.gps1_trusted
+    # Tight again (0.1 m) and GPS1 right on it for rejoin_s: trusted
+    for k in range(12):
+        s.gps1(good(100.0 + k), P, COV)
+    assert s.gps1_trusted

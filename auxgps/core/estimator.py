@@ -307,7 +307,8 @@ class Estimator:
         sup = self.supervisor
         sup.gps1(Gps1Sample(t_meas, rec.fix_type, rec.satellites, p, rec.h_acc_m),
                  est.p_ned_m if est is not None else None, est.cov_p_m2[:2, :2] if est is not None else None)
-        note = sup.disagreement if sup.disagreement and sup.disagreement != self._last_disagreement else None
+        # Said as a disagreement begins, not at every report while it lasts (the distance changes at each one).
+        note = sup.disagreement if sup.disagreement and self._last_disagreement is None else None
         self._last_disagreement = sup.disagreement
         if not sup.gps1_trusted:
             self._gps1_sats = None
@@ -416,7 +417,11 @@ class Estimator:
             return self._acquire(res, common)
         if job.mapping:
             est = self.filter.estimate_at(res.t_s)
-            d = float(np.linalg.norm(res.p_ned_m[:2] - est.p_ned_m[:2]))
+            d_ne = res.p_ned_m[:2] - est.p_ned_m[:2]
+            d = float(np.linalg.norm(d_ne))
+            drag = self.supervisor.visual_check(res.t_s, d_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2])
+            if drag:
+                common["note"] = "; ".join(n for n in (common["note"], drag) if n)
             return FrameResult(t, "self-check", f"{d:.3f} m", self_check_m=d, **common)
         with self.stopwatch("filtering"):
             decision = self.filter.update_position(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2], visual=True)

@@ -94,6 +94,7 @@ class _Setup:
         self.R_body_cam = R_body_cam_from_mount(*np.deg2rad([m.roll_deg, m.pitch_deg, m.yaw_deg]))
         self.renderer = Renderer(world, self.camera)
         self.effects = sim.image_effects()
+        self.survey_notes: list[tuple[float, str]] = []  # what the survey's estimator said (with fault injection)
 
     def render(self, traj, i):
         pose = CameraPose(traj.p_ned_m[i].copy(), traj.R_ned_body(i) @ self.R_body_cam)
@@ -188,8 +189,9 @@ def _map_flight(su: _Setup, alt_m: float, fps: float, progress) -> tuple[Estimat
         for lid, p in zip(mapped.landmark_ids[fed], seen.rendered.true_points_at(seen.result.features.uv_px[fed])):
             truths_of.setdefault(int(lid), []).append(p)
 
+    faults = FaultInjector(FaultPlan(list(sim.faults)), "mapping") if sim.faults else None
     _fly(est, su, traj, su.sensors(traj, imu_bias(sim.noise, su.rng_imu)), fps, latency_s=sim.denial.fix_latency_s,
-         on_frame=on_frame, progress=progress)
+         on_frame=on_frame, faults=faults if faults is not None and faults.faults else None, notes=su.survey_notes, progress=progress)
     # A landmark's truth is the median of the true points behind the features that fed it. Scored: the
     # landmarks positioning uses (seen more than 10 times, views consistent), and all seen more than 10 times.
     lm = est.landmarks
@@ -264,6 +266,7 @@ def run_once(
     sensors = su.sensors(traj, imu_bias(sim.noise, su.rng_imu), denied_from_s=denied_from)
     notes: list[tuple[float, str]] = []
     faults = FaultInjector(FaultPlan(list(sim.faults))) if sim.faults else None
+    faults = faults if faults is not None and faults.faults else None
     _fly(est, su, traj, sensors, fps, latency_s=den.fix_latency_s, on_frame=on_frame, on_output=on_output, blackout=blackout,
          faults=faults, notes=notes, progress=progress)
     # A fix captured in the flight's last moments never reaches the filter.
@@ -294,5 +297,5 @@ def run_once(
         positioning_ms=np.array(pos_ms),
         features_per_frame=np.array(n_feat),
         no_fix_reasons=reasons,
-        notes=notes,
+        notes=[(t, f"survey: {line}") for t, line in su.survey_notes] + notes,
     )

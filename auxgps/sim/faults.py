@@ -13,8 +13,11 @@ A fault file (``auxgps eval --faults FILE``)::
       - {kind: height_stuck, at_s: 160, for_s: 5}       # the height above home repeats one value
       - {kind: telemetry_duplicated, at_s: 180, for_s: 3}  # every message twice
       - {kind: telemetry_reordered, at_s: 200, for_s: 3}   # each step's messages after the next step's
+      - {kind: gps1_drag, flight: mapping, at_s: 30, for_s: 60, speed_m_s: 0.5, bearing_deg: 45}
 
-``at_s`` is on the positioning flight's clock (GPS1 is lost at ``denial.gps_until_s``), ``for_s`` how long it lasts.
+``at_s`` is on the clock of the flight it applies to (``flight``: "positioning", the default, where GPS1 is lost at
+``denial.gps_until_s``; or "mapping", the survey), ``for_s`` how long it lasts. A GPS1 drag moves GPS1's reports
+away from the truth at ``speed_m_s`` towards ``bearing_deg`` (from north) for ``for_s``, then holds that offset.
 """
 
 from __future__ import annotations
@@ -27,10 +30,10 @@ from pydantic import Field
 from pydantic.dataclasses import dataclass as config_dataclass
 
 from auxgps.config import _STRICT, NonNegative, Positive, parse_as, read_yaml
-from auxgps.core.events import Attitude, Position
+from auxgps.core.events import Attitude, Gps1, Position
 
 Kind = Literal["camera_frozen", "camera_dark_half", "camera_saturated", "camera_blur", "camera_slow", "attitude_stops",
-               "height_stuck", "telemetry_duplicated", "telemetry_reordered"]
+               "height_stuck", "telemetry_duplicated", "telemetry_reordered", "gps1_drag"]
 
 
 @config_dataclass(config=_STRICT, frozen=True)
@@ -40,6 +43,9 @@ class Fault:
     for_s: Positive
     blur_sigma_px: Positive = 4.0  # camera_blur
     fps: Annotated[float, Field(gt=0, le=100)] = 1.0  # camera_slow
+    speed_m_s: NonNegative = 0.5  # gps1_drag
+    bearing_deg: float = 0.0  # gps1_drag
+    flight: Literal["positioning", "mapping"] = "positioning"
 
     def active(self, t_s: float) -> bool:
         return self.at_s <= t_s < self.at_s + self.for_s
@@ -57,8 +63,8 @@ def load_fault_plan(path) -> FaultPlan:
 class FaultInjector:
     """Applies a :class:`FaultPlan` to one flight's frames (:meth:`frame`) and telemetry (:meth:`events`)."""
 
-    def __init__(self, plan: FaultPlan) -> None:
-        self.faults = list(plan.faults)
+    def __init__(self, plan: FaultPlan, flight: str = "positioning") -> None:
+        self.faults = [f for f in plan.faults if f.flight == flight]
         self._held_image: dict[int, np.ndarray] = {}  # camera_frozen: the frame the driver repeats
         self._last_passed_t: dict[int, float] = {}  # camera_slow
         self._stuck_alt: dict[int, float] = {}  # height_stuck
@@ -96,6 +102,8 @@ class FaultInjector:
                 out = [self._stuck(k, e) if isinstance(e, Position) else e for e in out]
             elif f.kind == "telemetry_duplicated" and f.active(t_s):
                 out = [e for e in out for _ in (0, 1)]
+            elif f.kind == "gps1_drag" and t_s >= f.at_s:
+                out = [self._dragged(f, e) if isinstance(e, Gps1) and e.fix_type >= 3 else e for e in out]
         reorder = any(f.kind == "telemetry_reordered" and f.active(t_s) for f in self.faults)
         if reorder:
             if not self._held_events:
@@ -105,6 +113,14 @@ class FaultInjector:
         elif self._held_events:
             out, self._held_events = self._held_events + out, []
         return out
+
+    @staticmethod
+    def _dragged(f: Fault, e: Gps1) -> Gps1:
+        d_m = f.speed_m_s * min(e.t_s - f.at_s, f.for_s) if e.t_s > f.at_s else 0.0
+        b = np.deg2rad(f.bearing_deg)
+        dlat = np.rad2deg(d_m * np.cos(b) / 6_378_137.0)
+        dlon = np.rad2deg(d_m * np.sin(b) / (6_378_137.0 * np.cos(np.deg2rad(e.lat_deg))))
+        return Gps1(e.t_s, e.fix_type, e.satellites, e.lat_deg + float(dlat), e.lon_deg + float(dlon), e.alt_amsl_m, e.h_acc_m)
 
     def _stuck(self, k: int, e: Position) -> Position:
         alt = self._stuck_alt.setdefault(k, e.alt_above_home_m)
