@@ -19,19 +19,19 @@ def ground(seed=0, shape=(720, 1280)):
 
 def test_a_sharp_textured_frame_is_fit():
     fc = FrameCheck()
-    assert fc.check(0.0, ground(0), moved=True) is None
-    assert fc.check(0.1, ground(1), moved=True) is None
+    assert fc.check(0.0, ground(0), px_per_s=None) is None
+    assert fc.check(0.1, ground(1), px_per_s=None) is None
 
 
 def test_a_repeated_frame_is_frozen_only_while_the_vehicle_moves():
     img = ground(0)
     fc = FrameCheck()
-    fc.check(0.0, img, moved=True)
-    assert fc.check(0.1, img.copy(), moved=True).startswith("frozen camera")
+    fc.check(0.0, img, px_per_s=None)
+    assert fc.check(0.1, img.copy(), px_per_s=None).startswith("frozen camera")
     near = cv2.add(img, np.ones_like(img))  # re-encoded: a grey level off everywhere
-    assert fc.check(0.2, near, moved=True).startswith("frozen camera")
-    assert fc.check(0.3, near.copy(), moved=False) is None  # hovering: the same view is no fault
-    assert fc.check(0.4, ground(1), moved=True) is None
+    assert fc.check(0.2, near, px_per_s=None).startswith("frozen camera")
+    assert fc.check(0.3, near.copy(), px_per_s=0.0) is None  # hovering: the same view is no fault
+    assert fc.check(0.4, ground(1), px_per_s=None) is None
 
 
 @pytest.mark.parametrize("fault, starts", [
@@ -47,15 +47,15 @@ def test_covered_blinded_and_blurred_frames_are_named(fault, starts):
         img[:, : img.shape[1] // 2] = 255
     else:
         img = cv2.GaussianBlur(img, (0, 0), 3.0)
-    reason = FrameCheck().check(0.0, img, moved=True)
+    reason = FrameCheck().check(0.0, img, px_per_s=None)
     assert reason is not None and reason.startswith(starts), reason
 
 
 def test_mild_blur_and_a_quarter_in_shadow_are_still_fit():
     img = ground(0)
-    assert FrameCheck().check(0.0, cv2.GaussianBlur(img, (0, 0), 1.0), moved=True) is None
+    assert FrameCheck().check(0.0, cv2.GaussianBlur(img, (0, 0), 1.0), px_per_s=None) is None
     img[: img.shape[0] // 2, : img.shape[1] // 2] = 0
-    assert FrameCheck().check(0.0, img, moved=True) is None
+    assert FrameCheck().check(0.0, img, px_per_s=None) is None
 
 
 def test_a_collapsing_frame_rate_is_said_once_and_its_recovery_too():
@@ -72,3 +72,11 @@ def test_a_collapsing_frame_rate_is_said_once_and_its_recovery_too():
         notes.append(fc.rate_note(t))
     said = [n for n in notes if n]
     assert len(said) == 2 and said[0].startswith("camera frame rate fell") and said[1].startswith("camera frame rate back"), said
+
+
+def test_a_slow_vehicle_seeing_the_same_image_is_not_frozen_until_it_has_moved_two_small_pixels():
+    img = ground(0)
+    fc = FrameCheck()
+    fc.check(0.0, img, px_per_s=100.0)
+    assert fc.check(1 / 30, img.copy(), px_per_s=100.0) is None  # 3 px moved: alike at 160 px, no fault
+    assert fc.check(0.2, img.copy(), px_per_s=100.0).startswith("frozen camera: the frame repeats the one of 0.20 s ago")

@@ -62,7 +62,8 @@ class EstimatorOptions:
     gps1_lag_s: float = 0.1
     max_map_distance_m: float = 5000.0  # a loaded map's origin this far from GPS1's first fix is of somewhere else
     max_attitude_age_s: float = 0.2  # no fix from a frame, no IMU integration, without an attitude this recent
-    height_stuck_s: float = 2.0  # a height above home that repeats one value this long is stuck: not fused
+    height_stuck_s: float = 2.0  # a height above home repeating one value this long while climbing or descending
+    height_stuck_min_vd_m_s: float = 0.3  # at this vertical speed or more (the filter's) is stuck: not fused
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
 
 
@@ -217,7 +218,8 @@ class Estimator:
         if kind not in (Imu, Attitude, Position, Gps1):
             return None
         t_last = self._last_t_of.get(kind)
-        if t_last is not None and event.t_s == t_last:
+        if t_last is not None and event.t_s == t_last and kind is not Gps1:
+            # (GPS1 is exempt: ArduPilot re-sends its last fix, with that fix's time, until a new one comes.)
             return self._telemetry_fault("duplicated telemetry: repeats dropped", event.t_s)
         if kind is Imu and t_last is not None and event.t_s < t_last:
             return self._telemetry_fault("telemetry out of time order: late IMU samples dropped", event.t_s)
@@ -271,7 +273,10 @@ class Estimator:
             return None
         same = self._height_same_since
         if same is not None and rec.alt_above_home_m == same[0]:
-            if rec.t_s - same[1] >= self.options.height_stuck_s:
+            # The autopilot's height is its EKF's, which holds one value to the millimetre in a steady hover: a
+            # repeat is a fault only while the filter (the IMU) says the vehicle climbs or descends.
+            vd = abs(float(self.filter.estimate().v_ned_m_s[2])) if self.filter is not None else 0.0
+            if rec.t_s - same[1] >= self.options.height_stuck_s and vd > self.options.height_stuck_min_vd_m_s:
                 return self._telemetry_fault(f"height above home stuck at {same[0]:.2f} m for "
                                              f"{self.options.height_stuck_s:g} s: not fused", rec.t_s)
         else:
@@ -367,12 +372,10 @@ class Estimator:
         """The frame's fault (None: fit to locate from) and a line for the events log when a fault begins or ends
         or the frame rate falls."""
         t = job.frame.t_s
-        dt = t - self._last_checked_t_s if self._last_checked_t_s is not None else np.inf
-        self._last_checked_t_s = t
-        # Moved: by half a pixel's footprint at the image centre since the last frame (unknown speed: moved).
+        # The image's apparent speed at its centre, px/s (None: unknown, no filter)
         gsd_m = max(job.alt_above_origin_m, 1.0) / self.camera.focal_px
-        moved = job.speed_h_m_s is None or not np.isfinite(dt) or job.speed_h_m_s * dt >= 0.5 * gsd_m
-        fault = self.frame_check.check(t, job.frame.image_bgr, moved)
+        px_per_s = job.speed_h_m_s / gsd_m if job.speed_h_m_s is not None else None
+        fault = self.frame_check.check(t, job.frame.image_bgr, px_per_s)
         notes = []
         kind = fault.split(":")[0].split(" (")[0] if fault else None
         if kind != self._frame_fault:

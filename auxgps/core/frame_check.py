@@ -4,11 +4,11 @@ A fix from a bad frame is worse than none: a driver that stalls repeats its last
 each repeat located again is a fix at a position the drone has left. :class:`FrameCheck` looks at each frame at a
 small size (``size_px`` on its long side; well under a millisecond) and names what is wrong:
 
-- **frozen**: the frame repeats the previous one (no pixel of the small image changed by more than
-  ``frozen_max_diff`` grey levels) while the vehicle has moved (``moved`` is the caller's judgement, from the
-  filter) and the image has something to see (standard deviation over ``min_structure`` levels: over featureless
-  ground, successive frames are alike anyway). A vehicle hovering still may see the same image twice; that is not
-  a fault.
+- **frozen**: the frame repeats the last one that differed (no pixel of the small image changed by more than
+  ``frozen_max_diff`` grey levels) although the vehicle has moved ``frozen_min_motion_px`` full-size pixels since
+  (the caller's apparent speed, from the filter; unknown: any repeat), and the image has something to see (standard
+  deviation over ``min_structure`` levels: over featureless ground, successive frames are alike anyway). Frames a
+  slow vehicle takes a fraction of a pixel apart are alike and not a fault; nor is a vehicle hovering still.
 - **dark**: more than ``max_dark_share`` of the pixels at or under ``dark_level`` (a strap over the lens, night);
 - **saturated**: more than ``max_saturated_share`` at or over ``saturated_level`` (the sun in view, a gain gone);
 - **blurred**: the fine detail gone: the Laplacian's energy is less than ``min_sharpness`` times that of the same
@@ -32,6 +32,7 @@ import numpy as np
 class FrameCheckConfig:
     size_px: int = 160
     frozen_max_diff: int = 3
+    frozen_min_motion_px: float = 16.0  # two pixels of the small image
     min_structure: float = 2.0
     dark_level: int = 8
     max_dark_share: float = 0.4
@@ -47,7 +48,8 @@ class FrameCheck:
 
     def __init__(self, cfg: FrameCheckConfig | None = None) -> None:
         self.cfg = cfg or FrameCheckConfig()
-        self._last_small: np.ndarray | None = None
+        self._last_small: np.ndarray | None = None  # the reference: the last frame that differed from its predecessor
+        self._ref_t_s = 0.0
         self._last_t_s: float | None = None
         self._intervals: deque[float] = deque(maxlen=30)
         self._slow = False
@@ -58,16 +60,23 @@ class FrameCheck:
         grey = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
         return cv2.resize(grey, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
 
-    def check(self, t_s: float, image_bgr: np.ndarray, moved: bool) -> str | None:
-        """What is wrong with this frame, in a few words, or None when it is fit to locate from."""
+    def check(self, t_s: float, image_bgr: np.ndarray, px_per_s: float | None) -> str | None:
+        """What is wrong with this frame, in a few words, or None when it is fit to locate from. ``px_per_s``: how
+        fast the scene moves across the image at its centre, full-size px/s (None: unknown)."""
         cfg = self.cfg
         small = self.small_grey(image_bgr)
-        last, self._last_small = self._last_small, small
-        if last is not None and last.shape == small.shape and moved:
-            diff = cv2.absdiff(small, last)
-            if int(diff.max()) <= cfg.frozen_max_diff and float(small.std()) > cfg.min_structure:
-                return (f"frozen camera: the frame repeats the last one (no pixel changed by more than {int(diff.max())} "
-                        "grey levels) while the vehicle moved")
+        ref = self._last_small
+        if ref is None or ref.shape != small.shape:
+            self._last_small, self._ref_t_s = small, t_s
+        else:
+            diff = cv2.absdiff(small, ref)
+            if int(diff.max()) > cfg.frozen_max_diff:
+                self._last_small, self._ref_t_s = small, t_s  # it changed: the new reference
+            else:
+                moved_px = np.inf if px_per_s is None else px_per_s * (t_s - self._ref_t_s)
+                if moved_px >= cfg.frozen_min_motion_px and float(small.std()) > cfg.min_structure:
+                    return (f"frozen camera: the frame repeats the one of {t_s - self._ref_t_s:.2f} s ago (no pixel changed by more "
+                            f"than {int(diff.max())} grey levels) while the vehicle moved")
         n = small.size
         dark = float(np.count_nonzero(small <= cfg.dark_level)) / n
         if dark > cfg.max_dark_share:
