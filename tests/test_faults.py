@@ -12,17 +12,11 @@ import pytest
 
 from auxgps.io.map_file import load_map
 from tests.conftest import free_port
+from tests.test_closed_loop import start_emulator  # the same world, port and log options
 
 REPO = Path(__file__).resolve().parent.parent
 WORLD = str(REPO / "config" / "worlds" / "cubes4_0.5m_different.yaml")
 GPS_TIMEOUT_S = 4.0  # AP_GPS: an instance with no message for this long is timed out
-
-
-def start_emulator(port: int, log: Path, *options: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "auxgps.sim.emulator", "--world", WORLD, "--port", str(port), "--log", str(log), *options],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )
 
 
 def start_run(port: int, log_dir: Path, *options: str) -> subprocess.Popen:

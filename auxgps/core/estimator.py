@@ -128,6 +128,11 @@ class Output:
     estimate: FusedEstimate | None
 
 
+def _joined(*lines: str | None) -> str | None:
+    """Events-log lines said together, in one line (None when there is none)."""
+    return "; ".join(line for line in lines if line) or None
+
+
 @dataclass(frozen=True)
 class Track:
     """A constant-velocity track through a run of fixes, at the last one's time: position and velocity (north,
@@ -204,7 +209,6 @@ class Estimator:
         self._attitude_lost = False
         self._pending_note: str | None = None  # said with the next finished frame
         self._frame_fault: str | None = None  # the camera fault in force (its kind), for the events log
-        self._last_checked_t_s: float | None = None
 
     # -- telemetry -----------------------------------------------------------------------------------------
 
@@ -256,17 +260,15 @@ class Estimator:
     def _on_imu(self, rec: Imu) -> None:
         # Without a recent attitude, a sample cannot be rotated into NED: it is not integrated, and the filter
         # crosses the gap at constant velocity with its covariance loosened when samples are usable again.
-        if self.filter is not None and self._attitude_age_s(rec.t_s) <= self.options.max_attitude_age_s:
-            R = R_ned_body_from_euler(*self._attitude_at(rec.t_s))
-            self.filter.propagate(ImuSample(rec.t_s, rec.f_body_m_s2, R))
+        if self.filter is None or not self._attitudes:
+            return
+        att = self._nearest_attitude(rec.t_s)
+        if abs(att.t_s - rec.t_s) <= self.options.max_attitude_age_s:
+            self.filter.propagate(ImuSample(rec.t_s, rec.f_body_m_s2, R_ned_body_from_euler(*att.euler_rad)))
 
     def _attitude_age_s(self, t_s: float) -> float:
         """How far the nearest attitude sample is from ``t_s``, s (inf without one)."""
-        if not self._attitudes:
-            return np.inf
-        k = bisect.bisect_left(self._attitudes, t_s, key=lambda a: a.t_s)
-        near = [abs(self._attitudes[j].t_s - t_s) for j in (k - 1, k) if 0 <= j < len(self._attitudes)]
-        return min(near)
+        return abs(self._nearest_attitude(t_s).t_s - t_s) if self._attitudes else np.inf
 
     def _on_position(self, rec: Position) -> str | None:
         if not np.isfinite(rec.alt_above_home_m):
@@ -327,13 +329,16 @@ class Estimator:
         self.last_correction_t_s = t_meas
         return note
 
-    def _attitude_at(self, t_s: float) -> np.ndarray:
-        """The attitude sample nearest to ``t_s`` (the earlier of two as near). Samples arrive in time order."""
+    def _nearest_attitude(self, t_s: float) -> Attitude:
+        """The attitude sample nearest to ``t_s`` (the earlier of two as near). Samples are kept in time order."""
         atts = self._attitudes
         k = bisect.bisect_left(atts, t_s, key=lambda a: a.t_s)
         if k == len(atts) or (k > 0 and t_s - atts[k - 1].t_s <= atts[k].t_s - t_s):
             k -= 1
-        return atts[k].euler_rad
+        return atts[k]
+
+    def _attitude_at(self, t_s: float) -> np.ndarray:
+        return self._nearest_attitude(t_s).euler_rad
 
     # -- frames --------------------------------------------------------------------------------------------
 
@@ -343,7 +348,7 @@ class Estimator:
         alt = self.alt_above_origin_m
         rate = self.frame_check.rate_note(frame.t_s)
         if rate:
-            self._pending_note = "; ".join(n for n in (self._pending_note, rate) if n)
+            self._pending_note = _joined(self._pending_note, rate)
         age = self._attitude_age_s(frame.t_s)
         if self._attitudes and age > self.options.max_attitude_age_s:
             note = None if self._attitude_lost else "attitude stream stopped: no fix until it is back"
@@ -352,7 +357,7 @@ class Estimator:
                                f"(nearest {age:.1f} s away)", note=note)
         if self._attitude_lost and self._attitudes:
             self._attitude_lost = False
-            self._pending_note = "; ".join(n for n in (self._pending_note, "attitude stream back") if n)
+            self._pending_note = _joined(self._pending_note, "attitude stream back")
         if self.filter is None and self._attitudes and alt is not None and len(self.landmarks) and not self.supervisor.gps1_trusted:
             # No filter, no GPS1, a map: locate without a prior, to start the filter (acquisition)
             return FrameJob(frame, R_ned_body_from_euler(*self._attitude_at(frame.t_s)), alt, None, False, None)
@@ -376,12 +381,12 @@ class Estimator:
         gsd_m = max(job.alt_above_origin_m, 1.0) / self.camera.focal_px
         px_per_s = job.speed_h_m_s / gsd_m if job.speed_h_m_s is not None else None
         fault = self.frame_check.check(t, job.frame.image_bgr, px_per_s)
-        notes = []
         kind = fault.split(":")[0].split(" (")[0] if fault else None
+        note = None
         if kind != self._frame_fault:
-            notes.append(f"camera fault: {fault}; no fix from such frames" if fault else f"camera fault over ({self._frame_fault})")
+            note = f"camera fault: {fault}; no fix from such frames" if fault else f"camera fault over ({self._frame_fault})"
             self._frame_fault = kind
-        return fault, "; ".join(n for n in notes if n) or None
+        return fault, note
 
     def process_frame(self, job: FrameJob) -> FrameWork:
         """Check the frame, detect, then map (while GPS1 is trusted) and locate. Reads and changes only the map,
@@ -411,7 +416,7 @@ class Estimator:
         """Fuse the frame's fix (positioning) or compare it with the filter (mapping)."""
         job, res = work.job, work.located
         t = job.frame.t_s
-        note = "; ".join(n for n in (self._pending_note, work.note) if n) or None
+        note = _joined(self._pending_note, work.note)
         self._pending_note = None
         common = dict(mapping=job.mapping, located=res, mapped=work.mapped, features=work.features, note=note)
         if not isinstance(res, Fix):
@@ -424,7 +429,7 @@ class Estimator:
             d = float(np.linalg.norm(d_ne))
             drag = self.supervisor.visual_check(res.t_s, d_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2])
             if drag:
-                common["note"] = "; ".join(n for n in (common["note"], drag) if n)
+                common["note"] = _joined(common["note"], drag)
             return FrameResult(t, "self-check", f"{d:.3f} m", self_check_m=d, **common)
         with self.stopwatch("filtering"):
             decision = self.filter.update_position(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2], visual=True)

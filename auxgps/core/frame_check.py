@@ -54,17 +54,17 @@ class FrameCheck:
         self._intervals: deque[float] = deque(maxlen=30)
         self._slow = False
 
-    def small_grey(self, image_bgr: np.ndarray) -> np.ndarray:
-        h, w = image_bgr.shape[:2]
+    def small_grey(self, grey: np.ndarray) -> np.ndarray:
+        h, w = grey.shape[:2]
         s = self.cfg.size_px / max(h, w)
-        grey = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
         return cv2.resize(grey, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
 
     def check(self, t_s: float, image_bgr: np.ndarray, px_per_s: float | None) -> str | None:
         """What is wrong with this frame, in a few words, or None when it is fit to locate from. ``px_per_s``: how
         fast the scene moves across the image at its centre, full-size px/s (None: unknown)."""
         cfg = self.cfg
-        small = self.small_grey(image_bgr)
+        full = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
+        small = self.small_grey(full)
         ref = self._last_small
         if ref is None or ref.shape != small.shape:
             self._last_small, self._ref_t_s = small, t_s
@@ -84,7 +84,6 @@ class FrameCheck:
         bright = float(np.count_nonzero(small >= cfg.saturated_level)) / n
         if bright > cfg.max_saturated_share:
             return f"image {bright:.0%} saturated (sun in view?)"
-        full = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
         half = cv2.pyrDown(full).astype(np.float32)
         lap = cv2.Laplacian(half, cv2.CV_32F)
         energy = float(np.mean(lap * lap))
