@@ -144,6 +144,7 @@ def _run(args) -> int:
         record_dir=args.record,
         connect_timeout_s=args.connect_timeout,
         checkpoint_s=args.checkpoint,
+        frame_nice=args.nice,
     )
     return Companion(load_pipeline_config(args.config), opts).run()
 
@@ -482,6 +483,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--save-map", help="save the map here, atomically: while flying (see --checkpoint), at every mode change and at the end")
     p.add_argument("--checkpoint", type=_non_negative(float), default=10.0, metavar="S",
                    help="with --save-map, write the map every S seconds while flying (default 10; 0: at mode changes and the end only)")
+    p.add_argument("--nice", type=_number(int, lambda v: 0 <= v <= 19, "0 to 19"), default=0, metavar="N",
+                   help="run frame processing N niceness steps below the GPS_INPUT timer and the link reader, so that a "
+                        "busy computer delays frames (dropped, newest kept) before GPS_INPUT (default 0; see docs/faults.md)")
     p.add_argument("--log-dir", default="out/run", help="CSV logs of fixes, gate decisions, GPS_INPUT and events")
     p.add_argument("--duration", type=_positive(float), help="stop after this many seconds")
     p.add_argument("--rate", type=_positive(float), default=10.0, help="GPS_INPUT rate, Hz (default 10)")

@@ -10,6 +10,7 @@ this process's monotonic clock.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from dataclasses import asdict, dataclass
@@ -26,6 +27,20 @@ from auxgps.io.recording import Recorder
 log = logging.getLogger(__name__)
 
 
+def lower_this_thread(steps: int) -> int:
+    """Raise the calling thread's niceness by ``steps`` (Linux keeps one per thread; threads it starts later,
+    OpenCV's among them, inherit it). Returns the new niceness; without per-thread priorities, says so and leaves it."""
+    tid = threading.get_native_id()
+    try:
+        nice = os.getpriority(os.PRIO_PROCESS, tid) + steps
+        os.setpriority(os.PRIO_PROCESS, tid, nice)
+    except (AttributeError, OSError) as err:  # not Linux, or not allowed
+        log.warning("--nice %d: could not lower the frame thread's priority (%s); frames and the timer share one", steps, err)
+        return 0
+    log.info("frame processing at niceness %d, the GPS_INPUT timer and the link reader above it", nice)
+    return nice
+
+
 @dataclass(frozen=True)
 class RunOptions:
     connect: str
@@ -40,6 +55,7 @@ class RunOptions:
     record_dir: str | None = None  # record what the estimator sees here (auxgps.io.recording)
     connect_timeout_s: float = 15.0  # at start, how long the autopilot may take to be there
     checkpoint_s: float = 10.0  # with map_out: the map is also written this often while flying, and at every mode change (0: at the end only)
+    frame_nice: int = 0  # frame processing this many niceness steps below the timer and the reader (Linux: per thread)
 
 
 class Companion:
@@ -70,6 +86,9 @@ class Companion:
         self.checkpoints = 0
         self._dropped_said = (time.monotonic(), 0)  # (when, the camera's dropped count then)
 
+    def _event(self, t_s: float, text: str) -> None:
+        self.log.event(t_s, text, self._decoder.clock.boot_s(t_s))
+
     # -- messages from the autopilot (reader thread) --------------------------------------------------------
 
     def _on_message(self, msg, arrival_s: float) -> None:
@@ -84,7 +103,7 @@ class Companion:
                 return
             note = self.estimator.feed(rec)
         if note:
-            self.log.event(rec.t_s, note)
+            self._event(rec.t_s, note)
 
     # -- GPS_INPUT at a steady rate (timer thread) ----------------------------------------------------------
 
@@ -118,7 +137,7 @@ class Companion:
         self.log.output(out)
         if out.decision.status:
             self.link.send_statustext(out.decision.status)
-            self.log.event(out.t_s, out.decision.status)
+            self._event(out.t_s, out.decision.status)
 
     # -- frames (main thread) -------------------------------------------------------------------------------
 
@@ -136,7 +155,7 @@ class Companion:
                 res = self.estimator.finish_frame(work)
         self.log.frame(res, self.estimator.frame)
         if res.note:
-            self.log.event(res.t_s, res.note)
+            self._event(res.t_s, res.note)
             log.warning("%s", res.note)
         return res
 
@@ -170,7 +189,7 @@ class Companion:
         self._dropped_said = (now, n)
         if n > n_said:
             line = f"camera: {n - n_said} frames dropped in {now - t_said:.0f} s, processing slower than the camera (the newest is kept)"
-            self.log.event(now, line)
+            self._event(now, line)
             log.info("%s", line)
 
     def _checkpoint_if_due(self) -> None:
@@ -185,6 +204,8 @@ class Companion:
         self.link.start()
         timer = threading.Thread(target=self._gps_input_loop, daemon=True, name="gps-input")
         timer.start()
+        if self.opts.frame_nice:
+            lower_this_thread(self.opts.frame_nice)  # after the reader and the timer started: they keep theirs
         t_end = None if self.opts.duration_s is None else time.monotonic() + self.opts.duration_s
         try:
             while not self._stop.is_set() and (t_end is None or time.monotonic() < t_end):

@@ -58,3 +58,23 @@ def test_a_bug_says_so_keeps_the_traceback_and_exits_3(monkeypatch, capsys):
     assert len(err) == 1 and "a bug in auxgps" in err[0] and "ZeroDivisionError" in err[0]
     log = Path(err[0].split("the traceback is in ")[1].split(";")[0])
     assert "ZeroDivisionError: a deliberate bug" in log.read_text()
+
+
+def test_nice_lowers_only_the_thread_that_asks():
+    import os
+    import threading
+
+    from auxgps.companion import lower_this_thread
+
+    main_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    seen = {}
+
+    def frames():
+        seen["new"] = lower_this_thread(5)
+        seen["read"] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    t = threading.Thread(target=frames)
+    t.start()
+    t.join()
+    assert seen["new"] == seen["read"] == min(main_nice + 5, 19)
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == main_nice

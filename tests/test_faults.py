@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from auxgps.io.map_file import load_map
@@ -120,3 +121,141 @@ def test_each_injected_fault_is_named_once_and_never_becomes_a_confident_wrong_f
         assert sum(line.startswith(starts) or f"; {starts}" in line for line in lines) == 1, (starts, lines)
     assert figures["gate"]["accepted_over_0_5m"] == 0
     assert figures["fused"]["within_3sigma"] >= 0.97
+
+
+def gps2_error_m(samples: list[dict], after_t_s: float, lag_s: float = 0.1) -> np.ndarray:
+    """GPS2's horizontal distance from the truth ``lag_s`` before (GPS_INPUT describes the vehicle 0.1 s ago), at
+    each log sample after ``after_t_s`` with a GPS2 reading, m."""
+    t = np.array([s["t_s"] for s in samples])
+    truth = np.array([s["truth_ned_m"][:2] for s in samples])
+    out = []
+    for s in samples:
+        if s["t_s"] >= after_t_s and s["gps2_ned_m"] is not None and s["gps2_fix"] >= 3:
+            then = np.array([np.interp(s["t_s"] - lag_s, t, truth[:, i]) for i in (0, 1)])
+            out.append(float(np.hypot(*(np.array(s["gps2_ned_m"][:2]) - then))))
+    return np.array(out)
+
+
+@pytest.mark.flight
+@pytest.mark.parametrize("speed_m_s", [pytest.param(0.2, marks=pytest.mark.flight_extra), 0.5,
+                                       pytest.param(1.0, marks=pytest.mark.flight_extra)])
+def test_a_gps1_dragged_while_mapping_is_found_mapping_stops_and_the_vehicle_lands_home(tmp_path, speed_m_s):
+    """The emulator drags GPS1 away at ``speed_m_s`` (bearing 45 deg) from 30 s after take-off for 10 s, then holds
+    the offset; GPS1 fails at 60 s. auxgps must find the drag within 10 s, map nothing after it (so no landmark has
+    more drag in it than GPS1 had then), and position from the map: GPS2 as accurate as usual, landing home."""
+    faults = tmp_path / "drag.yaml"
+    faults.write_text(f"faults:\n  - {{kind: gps1_drag, flight: mapping, at_s: 30, for_s: 10, speed_m_s: {speed_m_s}, bearing_deg: 45}}\n")
+    port = free_port()
+    emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "12", "--fail-gps1-at", "60", "--faults", str(faults),
+                         "--max-seconds", "600")
+    run = None
+    try:
+        run = start_run(port, tmp_path / "run")
+        emu.wait(timeout=600)
+    finally:
+        for p in (emu, run):
+            if p is not None and p.poll() is None:
+                p.terminate()
+        for p in (emu, run):
+            if p is not None:
+                p.wait(timeout=20)
+    log = json.loads((tmp_path / "emu.json").read_text())
+    run_log = (tmp_path / "run" / "run.log").read_text() if (tmp_path / "run" / "run.log").exists() else ""
+    assert log["exit_reason"] == "landed", run_log[-2000:]
+    takeoff_t_s = next(e["t_s"] for e in log["events"] if e["event"] == "takeoff")
+    drag_t_s = takeoff_t_s + 30.0
+    with open(tmp_path / "run" / "events.csv") as f:
+        events = [(float(r["autopilot_boot_s"]), r["text"]) for r in csv.DictReader(f) if r["autopilot_boot_s"]]
+    found = [t for t, text in events if text.startswith(("GPS1 drifts", "GPS1 off track"))]
+    assert found, events
+    detected_after_s = found[0] - drag_t_s
+    mapping_after = [t for t, text in events if t > found[0] and "auxgps: mapping" in text]
+    # Landmarks are geotagged at the filter's position, which GPS_INPUT reports: GPS2's error from the drag's start
+    # to its finding is the most drag any landmark can have in it (mapping stops as it is found).
+    in_map = gps2_error_m([s for s in log["samples"] if s["t_s"] <= found[0]], drag_t_s)
+    err = gps2_error_m(log["samples"], found[0] + 2.0)
+    print(f"drag {speed_m_s} m/s: found {detected_after_s:.1f} s after it began, GPS1 then {speed_m_s * detected_after_s:.2f} m "
+          f"off, the filter that geotags landmarks at most {in_map.max():.2f} m; GPS2 after: {len(err)} samples, RMS "
+          f"{np.sqrt(np.mean(err ** 2)):.3f} m, max {err.max():.3f} m; landed {log['landing_error_m']:.2f} m from home")
+    assert 0.0 < detected_after_s <= 10.0
+    assert in_map.max() <= 1.0
+    assert not mapping_after, mapping_after
+    assert np.sqrt(np.mean(err ** 2)) <= 0.3 and err.max() <= 1.0
+    assert log["landing_error_m"] <= 1.0
+    assert not any(e["event"] == "failsafe" for e in log["events"])
+
+
+def test_gps1_faults_in_a_simulated_flight_inflate_and_drop_its_reports():
+    from auxgps.core.events import Gps1
+    from auxgps.sim.faults import Fault, FaultInjector, FaultPlan
+
+    inj = FaultInjector(FaultPlan([Fault("gps1_inflated", at_s=1.0, for_s=1.0, h_acc_m=4.0),
+                                   Fault("gps1_dropout", at_s=3.0, for_s=4.0, off_s=0.5, period_s=2.0)]))
+    reports = {}
+    for k in range(40):
+        t = 0.2 * k
+        out = inj.events(t, [Gps1(t, 6, 10, 47.0, 8.0, 500.0, 0.3)])
+        reports[round(t, 1)] = out[0] if out else None
+    inflated = [r for t, r in reports.items() if 1.0 <= t < 2.0]
+    assert all(r.h_acc_m == 4.0 for r in inflated) and np.std([r.lat_deg for r in inflated]) * 111e3 > 1.0
+    assert all(r is not None and r.h_acc_m == 0.3 and r.lat_deg == 47.0 for t, r in reports.items() if t < 1.0 or 2.0 <= t < 3.0)
+    assert [t for t, r in reports.items() if r is None] == [3.0, 3.2, 3.4, 5.0, 5.2, 5.4]
+
+
+def visual_fix_errors_m(run_dir: Path, log: dict) -> np.ndarray:
+    """The horizontal error of each visual fix auxgps accepted, against the emulator's truth at its capture time
+    (auxgps stamps on this machine's monotonic clock; the emulator logs that clock beside its own), m."""
+    from auxgps.core.geometry import LocalFrame
+
+    frame = LocalFrame(**log["origin"])
+    pairs = np.array(log["monotonic_clock"])
+    t = np.array([s["t_s"] for s in log["samples"]])
+    truth = np.array([s["truth_ned_m"][:2] for s in log["samples"]])
+    out = []
+    with open(run_dir / "fixes.csv") as f:
+        for row in csv.DictReader(f):
+            if row["kind"] != "visual" or row["accepted"] != "True":
+                continue
+            t_emu = float(np.interp(float(row["t_s"]), pairs[:, 1], pairs[:, 0]))
+            p = frame.to_ned(lat_deg=float(row["lat_deg"]), lon_deg=float(row["lon_deg"]), alt_amsl_m=frame.alt_amsl_m)
+            out.append(float(np.hypot(p[0] - np.interp(t_emu, t, truth[:, 0]), p[1] - np.interp(t_emu, t, truth[:, 1]))))
+    return np.array(out)
+
+
+def gps2_unhealthy_s(samples: list[dict]) -> float:
+    """How long GPS2 was unhealthy or without a 3D fix after it first became healthy, to the landing, emulated s."""
+    first = next(k for k, s in enumerate(samples) if s["gps2_healthy"] and s["gps2_fix"] >= 3)
+    flying = [s for s in samples[first:] if s["armed"]]
+    return sum(0.1 for s in flying if not (s["gps2_healthy"] and s["gps2_fix"] >= 3))
+
+
+@pytest.mark.flight
+def test_beside_two_busy_processes_gps2_stays_healthy_and_the_vehicle_lands_home(tmp_path):
+    """Two processes spinning at the same priority as auxgps for the whole flight (on two cores: auxgps, the
+    emulator and the two share them): GPS_INPUT keeps ArduPilot's rate rule, no accepted fix is over 0.5 m, and the
+    vehicle lands home on GPS2."""
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    port = free_port()
+    emu = run = None
+    try:
+        emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "12", "--fail-gps1-at", "20", "--max-seconds", "600")
+        run = start_run(port, tmp_path / "run")
+        emu.wait(timeout=600)
+    finally:
+        for p in (emu, run, *busy):
+            if p is not None and p.poll() is None:
+                p.terminate()
+        for p in (emu, run, *busy):
+            if p is not None:
+                p.wait(timeout=20)
+    log = json.loads((tmp_path / "emu.json").read_text())
+    assert log["exit_reason"] == "landed", (tmp_path / "run" / "run.log").read_text()[-2000:]
+    fixes = visual_fix_errors_m(tmp_path / "run", log)
+    unhealthy_s = gps2_unhealthy_s(log["samples"])
+    stats = log["gps_input"]
+    print(f"beside two busy loops: GPS_INPUT {stats}; GPS2 unhealthy {unhealthy_s:.1f} s; {len(fixes)} accepted fixes, "
+          f"RMS {np.sqrt(np.mean(fixes ** 2)):.3f} m, max {fixes.max():.3f} m; landed {log['landing_error_m']:.2f} m from home")
+    assert unhealthy_s == 0.0
+    assert len(fixes) > 100 and fixes.max() <= 0.5
+    assert log["landing_error_m"] <= 1.0
+    assert not any(e["event"] == "failsafe" for e in log["events"])

@@ -308,3 +308,14 @@ def test_an_imu_gap_is_not_integrated_from_one_sample_and_loosens_the_state():
     assert est.v_ned_m_s[0] == pytest.approx(1.0, abs=1e-9)
     assert est.p_ned_m[0] == pytest.approx(5.1, abs=1e-9)  # 1 m/s for 5.1 s
     assert est.sigma_h_worst_m > 2.0
+
+
+def test_without_reinit_a_run_of_rejected_fixes_is_reported_and_the_filter_stays():
+    cfg = FusionConfig()
+    f = NavFilter(cfg, 0.0, np.zeros(3), np.zeros(3), 0.05, 0.05)
+    decisions = [f.update_position(0.1 * k, np.array([3.0, 0.0]), np.eye(2) * 0.01, reinit=False) for k in range(1, 12)]
+    assert any(d.rejected_run for d in decisions) and not any(d.accepted for d in decisions)
+    assert f.n_reinit == 0 and abs(f.estimate().p_ned_m[0]) < 0.5
+    g = NavFilter(cfg, 0.0, np.zeros(3), np.zeros(3), 0.05, 0.05)
+    decisions = [g.update_position(0.1 * k, np.array([3.0, 0.0]), np.eye(2) * 0.01) for k in range(1, 12)]
+    assert any(d.rejected_run for d in decisions) and g.n_reinit >= 1 and abs(g.estimate().p_ned_m[0] - 3.0) < 0.5

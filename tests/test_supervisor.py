@@ -85,7 +85,8 @@ def test_gps1_rejoins_at_once_when_auxgps_has_no_position_of_its_own():
     assert not s.gps1_trusted
     s.gps1(good(1.4), P, np.diag([0.5, 2.5**2]))  # 2.5 m along its worst axis: trust GPS1 now
     assert s.gps1_trusted
-    assert "no position of its own" in s.decide(1.5, sigma_h_worst_m=2.5, last_correction_t_s=1.4).status
+    said = [s.decide(t, sigma_h_worst_m=2.5, last_correction_t_s=1.4).status for t in (1.5, 2.5, 3.5)]
+    assert any("no position of its own" in (line or "") for line in said), said
 
 
 def test_a_gps1_dragged_away_from_the_map_is_distrusted_and_rejoins_only_on_a_tight_agreement():
@@ -113,3 +114,37 @@ def test_a_gps1_dragged_away_from_the_map_is_distrusted_and_rejoins_only_on_a_ti
     for k in range(12):
         s.gps1(good(100.0 + k), P, COV)
     assert s.gps1_trusted
+
+
+def test_an_inflated_accuracy_is_distrusted_absolutely_and_against_its_own_usual():
+    s = Supervisor(SupervisorConfig(max_gps1_h_acc_m=3.0, h_acc_inflation=4.0))
+    for k in range(20):
+        s.gps1(Gps1Sample(0.2 * k, 6, 10, P, 0.3), P if k else None, COV if k else None)
+    assert s.gps1_trusted
+    s.gps1(Gps1Sample(4.2, 6, 10, P, 1.5), P, COV)  # 1.5 m: under 3 m, but over 4 x its usual 0.3 m
+    assert not s.gps1_trusted
+    line = [s.decide(4.2 + t, sigma_h_worst_m=0.1, last_correction_t_s=4.2 + t) for t in (0.0, 1.0)][0].status
+    assert line.startswith("GPS1 accuracy 1.5 m: distrusted") and "usually 0.30 m" in line
+    fresh = Supervisor(SupervisorConfig(max_gps1_h_acc_m=3.0))
+    fresh.gps1(Gps1Sample(0.0, 6, 10, P, 5.0), None, None)  # a first report over the absolute limit
+    assert not fresh.gps1_trusted
+
+
+def test_a_run_of_gps1_reports_the_filter_rejects_distrusts_gps1_strictly():
+    s = Supervisor()
+    s.gps1(good(0.0), None, None)
+    line = s.gps1_rejected(31.1, 1.1)
+    assert not s.gps1_trusted and line.startswith("GPS1 off track 1.1 m: distrusted, no mapping")
+    assert s.gps1_rejected(31.3, 1.3) is None  # said once
+    for k in range(30):  # 0.8 m off a loose estimate: within 2 m, but the rejoin is strict after such a run
+        s.gps1(good(32.0 + k, P + np.array([0.8, 0.0, 0.0])), P, np.eye(2) * 1.0)
+    assert not s.gps1_trusted
+
+
+def test_status_lines_come_one_at_a_time_in_order_each_whole():
+    s = Supervisor(SupervisorConfig(status_interval_s=1.0))
+    s.gps1(good(0.0), None, None)
+    s.gps1_rejected(0.1, 2.0)
+    said = [s.decide(t, sigma_h_worst_m=0.1, last_correction_t_s=t).status for t in (0.2, 0.5, 1.2, 2.2, 3.2)]
+    assert said[0].startswith("GPS1 off track 2.0 m") and said[1] is None and said[2] == "auxgps: positioning"
+    assert all(len(line) < 121 for line in said if line)

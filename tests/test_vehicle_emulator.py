@@ -499,3 +499,36 @@ def test_end_to_end_without_gps_input_the_vehicle_fails_safe_and_lands_away_from
     assert "GPS2_RAW" not in gcs.seen  # GPS2_TYPE 0: not sent, as ArduPilot
     late = {kind for kind, items in gcs.seen.items() for t, _ in items if t > t_stop_s + 1.0}
     assert late == {"HEARTBEAT", "SYSTEM_TIME"} | ({"STATUSTEXT"} & late), late
+
+
+def test_injected_gps1_faults_count_from_take_off():
+    """A drag moves GPS1 at its speed from at_s after take-off and then holds; a dropout silences GPS1 for the
+    first off_s of each period; an inflated GPS1 reports its accuracy and is that noisy."""
+    from auxgps.sim.faults import Fault
+
+    faults = (Fault("gps1_drag", at_s=2.0, for_s=2.0, speed_m_s=1.0, bearing_deg=90.0),
+              Fault("gps1_dropout", at_s=6.0, for_s=4.0, off_s=1.0, period_s=2.0),
+              Fault("gps1_inflated", at_s=11.0, for_s=2.0, h_acc_m=4.0))
+    sim = emu.VehicleSim(FRAME, emu.EmulatorOptions(altitude_m=3, survey_size_m=2, gps2_type=0, faults=faults))
+    offsets, arrivals, h_acc = {}, [], {}
+    while sim.t_s < 40.0:
+        before = sim.gps[0].last_fix_t_s
+        sim.step()
+        if sim.takeoff_t_s is None:
+            continue
+        t = round(sim.t_s - sim.dt_s - sim.takeoff_t_s, 2)
+        r = sim.gps[0].reading(sim.t_s)
+        if sim.gps[0].last_fix_t_s != before:
+            arrivals.append(t)
+            p_then = sim._motion_history[0][0]
+            offsets[t] = r.p_ned_m[1] - p_then[1]
+            h_acc[t] = r.h_acc_m
+        if t > 14.0:
+            break
+    assert sim.takeoff_t_s is not None
+    east = lambda a, b: [offsets[t] for t in offsets if a <= t < b]  # noqa: E731
+    assert max(abs(x) for x in east(0.0, 2.0)) < 0.3
+    assert np.allclose(np.median(east(4.2, 6.0)), 2.0, atol=0.2)  # 1 m/s for 2 s, then held
+    assert not [t for t in arrivals if 6.0 <= t < 7.0 or 8.0 <= t < 9.0]  # silent
+    assert [t for t in arrivals if 7.0 <= t < 8.0]  # and back between
+    assert all(h_acc[t] == 4.0 for t in h_acc if 11.0 <= t < 13.0) and all(h_acc[t] < 1.0 for t in h_acc if t < 11.0)

@@ -325,7 +325,14 @@ class Estimator:
         if self.filter is None:
             self.filter = NavFilter(self.cfg.fusion, t_meas, p, np.zeros(3), sigma, 1.0)
         else:
-            self.filter.update_position(t_meas, p[:2], np.eye(2) * sigma**2)
+            # Just trusted (again), the filter may be put onto GPS1; once GPS1 has been mapped from, a run of its
+            # reports the filter's gate rejects is a jump or a fast drag, and the map knows better than GPS1 where
+            # the vehicle is.
+            settled = len(self.landmarks) > 0 and sup.trusted_since_s is not None and t_meas - sup.trusted_since_s >= sup.cfg.rejoin_s
+            decision = self.filter.update_position(t_meas, p[:2], np.eye(2) * sigma**2, reinit=not settled)
+            if decision.rejected_run and settled:
+                self._gps1_sats = None
+                return _joined(note, sup.gps1_rejected(t_meas, float(np.linalg.norm(p[:2] - est.p_ned_m[:2]))))
         self.last_correction_t_s = t_meas
         return note
 
@@ -435,6 +442,9 @@ class Estimator:
             decision = self.filter.update_position(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2], visual=True)
         if decision.accepted:
             self.last_correction_t_s = max(res.t_s, self.last_correction_t_s or -np.inf)
+        elif decision.reason.endswith("older than the history"):  # a frame held up longer than the filter remembers
+            common["note"] = _joined(common["note"], self._telemetry_fault(
+                f"visual fix refused: {decision.reason} ({self.cfg.fusion.history_s:g} s); frames are late", t))
         return FrameResult(t, "visual", decision.reason, decision=decision, **common)
 
     def _acquire(self, fix: Fix, common: dict) -> FrameResult:

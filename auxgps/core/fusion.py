@@ -111,12 +111,14 @@ class FusedEstimate:
 
 @dataclass(frozen=True)
 class GateDecision:
-    """What the filter did with one fix. ``mahalanobis2`` is the squared distance of its innovation."""
+    """What the filter did with one fix. ``mahalanobis2`` is the squared distance of its innovation;
+    ``rejected_run``: the fix ended a run of consistent rejected fixes (the filter re-initialised on it, if allowed)."""
 
     t_s: float
     accepted: bool
     mahalanobis2: float
     reason: str
+    rejected_run: bool = False
 
 
 class NavFilter:
@@ -153,9 +155,11 @@ class NavFilter:
         self._retake(later or [])
         return True
 
-    def update_position(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray, visual: bool = False) -> GateDecision:
+    def update_position(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray, visual: bool = False,
+                        reinit: bool = True) -> GateDecision:
         """Fuse a horizontal position fix captured at ``t_s`` (up to ``history_s`` ago). A ``visual`` fix carries
-        the error all visual fixes share (see the module's docstring); a GPS reading does not."""
+        the error all visual fixes share (see the module's docstring); a GPS reading does not. Without ``reinit``,
+        a run of consistent rejected fixes is reported (``rejected_run``) but the filter stays where it is."""
         t_s = float(t_s)
         p_ne_m = np.asarray(p_ne_m, float).reshape(2)
         cov_ne_m2 = np.asarray(cov_ne_m2, float).reshape(2, 2)
@@ -176,11 +180,14 @@ class NavFilter:
             decision = GateDecision(t_s, False, m2, f"innovation {np.sqrt(m2):.1f} sigma")
             self._rejected_run.append((t_s, p_ne_m, cov_ne_m2))
             if self._rejected_run_agrees():
-                self._take("reinit", t_s, (p_ne_m, cov_ne_m2))
                 self._rejected_run.clear()
-                self.n_reinit += 1
-                log.warning("filter re-initialised at t=%.3f s on %d consistent rejected fixes", t_s, self.cfg.reinit_count)
-                decision = GateDecision(t_s, False, m2, "re-initialised on a run of consistent rejected fixes")
+                if reinit:
+                    self._take("reinit", t_s, (p_ne_m, cov_ne_m2))
+                    self.n_reinit += 1
+                    log.warning("filter re-initialised at t=%.3f s on %d consistent rejected fixes", t_s, self.cfg.reinit_count)
+                    decision = GateDecision(t_s, False, m2, "re-initialised on a run of consistent rejected fixes", True)
+                else:
+                    decision = GateDecision(t_s, False, m2, "a run of consistent rejected fixes (not re-initialised)", True)
         self._retake(later)
         return self._decide(decision)
 

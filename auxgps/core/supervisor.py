@@ -12,6 +12,11 @@ Modes
 GPS1 becomes trusted again only after it has agreed with auxgps's estimate for ``rejoin_s`` without a break, or at
 once when auxgps has no estimate of its own worth comparing with (looser than ``max_sigma_h_m``).
 
+GPS1 is not trusted either while its reported accuracy is over ``max_gps1_h_acc_m``, or over ``h_acc_inflation``
+times the median of its recent trusted reports (a receiver that keeps its 3D fix under jamming reports it so); nor
+when the filter's gate has rejected it ``reinit_count`` times in a row on one track (:meth:`Supervisor.gps1_rejected`:
+a jump the filter, not this comparison, saw first, as when GPS1 is dragged faster than the self-check can follow).
+
 A GPS1 dragged away slowly (spoofing, a failing receiver) is followed by the filter it corrects, so comparing the
 two cannot see it. The map can: while mapping, every frame is also located against the map (the self-check), and
 :meth:`Supervisor.visual_check` takes each self-check's difference from the filter. When the mean of the last
@@ -23,6 +28,7 @@ auxgps within its covariance alone, without the ``min_jump_m`` allowance, for ``
 from __future__ import annotations
 
 import enum
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,6 +60,11 @@ class SupervisorConfig:
     min_jump_m: float = 2.0  # and at least this far apart: a receiver's jump, not latency or noise
     rejoin_s: float = 10.0
     max_sigma_h_m: float = 2.0
+    # A standalone receiver reports 1 to 2.5 m, RTK centimetres, SITL 0.3 m: over this, or this many times the median
+    # of its last trusted reports, GPS1 is degraded (geotagging from it would blur the map).
+    max_gps1_h_acc_m: float = 3.0
+    h_acc_inflation: float = 4.0
+    h_acc_history: int = 50
     # Between visual fixes the filter carries on the IMU and its covariance grows honestly (the camera-blackout
     # test checks it); a landing's last metres see nothing mapped. This is a backstop against an IMU error the
     # filter does not model, however small its covariance says the error is.
@@ -86,16 +97,30 @@ class Supervisor:
         self._agree_since: float | None = None
         self._ever_trusted = False
         self._last_status_t = -np.inf
-        self._pending_status: str | None = None
+        self._pending_status: deque[str] = deque(maxlen=4)  # lines to announce, oldest first
         self.disagreement: str | None = None
         self._checks: list[tuple[float, np.ndarray, np.ndarray]] = []  # recent self-checks (t, fix - filter, cov)
         self.dragged_at_s: float | None = None  # when GPS1 was found dragged away from the map
+        self._h_acc_trusted: list[float] = []  # GPS1's reported accuracy while trusted, m (the latest h_acc_history)
+        self.trusted_since_s: float | None = None  # when GPS1 last became trusted
+
+    def _degraded(self, sample: Gps1Sample) -> str | None:
+        """Why GPS1's report is not good enough to trust (None: it is)."""
+        cfg = self.cfg
+        if sample.fix_type < cfg.min_fix_type or sample.satellites < cfg.min_satellites or not np.all(np.isfinite(sample.p_ned_m)):
+            return f"GPS1 lost (fix {sample.fix_type}, {sample.satellites} sats): positioning visually"
+        usual_m = float(np.median(self._h_acc_trusted)) if len(self._h_acc_trusted) >= 10 else None
+        if sample.h_acc_m > cfg.max_gps1_h_acc_m or (usual_m is not None and sample.h_acc_m > cfg.h_acc_inflation * max(usual_m, 0.05)):
+            usual = f"usually {usual_m:.2f} m" if usual_m is not None else f"over {cfg.max_gps1_h_acc_m:g} m"
+            return f"GPS1 accuracy {sample.h_acc_m:.1f} m: distrusted, positioning ({usual})"
+        return None
 
     def gps1(self, sample: Gps1Sample, p_est_ned_m: np.ndarray | None, cov_est_ne_m2: np.ndarray | None) -> None:
         """Take a GPS1 report; ``p_est``/``cov_est`` are auxgps's own estimate at the same time (None if none)."""
         cfg = self.cfg
         self._gps1 = sample
-        good = sample.fix_type >= cfg.min_fix_type and sample.satellites >= cfg.min_satellites and np.all(np.isfinite(sample.p_ned_m))
+        degraded = self._degraded(sample)
+        good = degraded is None
         agrees = True
         self.disagreement = None
         if good and p_est_ned_m is not None and cov_est_ne_m2 is not None:
@@ -108,12 +133,14 @@ class Supervisor:
                 self.disagreement = f"GPS1 disagrees with auxgps by {np.linalg.norm(d):.1f} m"
         if not (good and agrees):
             if self.gps1_trusted:
-                self._say(self.disagreement or f"GPS1 lost (fix {sample.fix_type}, {sample.satellites} sats): positioning visually", sample.t_s)
+                self._say(self.disagreement or degraded, sample.t_s)
             self.gps1_trusted = False
             self._agree_since = None
             return
         if self.gps1_trusted:
+            self._h_acc_trusted = (self._h_acc_trusted + [float(sample.h_acc_m)])[-cfg.h_acc_history:]
             return
+        self.trusted_since_s = sample.t_s  # (kept only if trusted below)
         if not self._ever_trusted:
             self.gps1_trusted = self._ever_trusted = True  # first lock: nothing of ours to compare with yet
             return
@@ -138,6 +165,21 @@ class Supervisor:
             self._checks.clear()
             self._say(f"GPS1 agrees with auxgps for {cfg.rejoin_s:.0f} s: mapping again", sample.t_s)
 
+    def gps1_rejected(self, t_s: float, distance_m: float) -> str | None:
+        """The filter's gate rejected GPS1 on a run of consistent reports ``distance_m`` from its track: GPS1
+        jumped, or is dragged faster than the filter follows. Distrusted as when found dragged. Returns the line
+        to log (None when GPS1 was not trusted anyway)."""
+        if not self.gps1_trusted:
+            return None
+        self.gps1_trusted = False
+        self._agree_since = None
+        self.dragged_at_s = t_s
+        self._checks.clear()
+        line = (f"GPS1 off track {distance_m:.1f} m: distrusted, no mapping (a run of its reports off the filter's track, "
+                "rejected by its gate)")
+        self._say(line, t_s)
+        return line
+
     def visual_check(self, t_s: float, d_ne_m: np.ndarray, cov_ne_m2: np.ndarray) -> str | None:
         """Take a self-check while mapping: a fix located on the map minus the filter (which follows GPS1), with
         their combined covariance. Returns a line when GPS1 is found dragged away from the map (then distrusted)."""
@@ -158,8 +200,8 @@ class Supervisor:
         self._agree_since = None
         self.dragged_at_s = t_s
         self._checks.clear()
-        line = (f"GPS1 drifts from auxgps's map: {np.linalg.norm(mean):.1f} m over the last {n} fixes; not trusted, "
-                "mapping stopped (spoofing or a failing receiver?)")
+        line = (f"GPS1 drifts {np.linalg.norm(mean):.1f} m from map: distrusted, no mapping (mean of the last {n} "
+                "self-checks; spoofing or a failing receiver?)")
         self._say(line, t_s)
         return line
 
@@ -182,11 +224,12 @@ class Supervisor:
             self._say(f"auxgps: {mode.value}", t_s)
             self.mode = mode
         status = None
-        if self._pending_status is not None and t_s - self._last_status_t >= cfg.status_interval_s:
-            status, self._pending_status = self._pending_status, None
+        if self._pending_status and t_s - self._last_status_t >= cfg.status_interval_s:
+            status = self._pending_status.popleft()
             self._last_status_t = t_s
         return Decision(mode, self.gps1_trusted, status)
 
     def _say(self, text: str, t_s: float) -> None:
-        # Several changes within the rate limit: the latest wins, the earlier ones are superseded.
-        self._pending_status = text if self._pending_status is None else f"{self._pending_status}; {text}"[-120:]
+        # One line per status interval, in order; a burst beyond the queue loses its oldest lines. A STATUSTEXT
+        # carries 50 characters: each line says what matters in its first 50.
+        self._pending_status.append(text)

@@ -7,7 +7,8 @@ Files in the log folder, flushed per row (a crash loses nothing written):
   gate decision, inliers, squared Mahalanobis distance, accepted, latitude and longitude (deg), one-sigma (m);
 - ``gps_input.csv``: per GPS_INPUT: time, fix type, latitude, longitude (deg), altitude AMSL and horizontal
   accuracy (m), satellites, auxgps's mode;
-- ``events.csv``: time and text of each status line and GPS1 disagreement.
+- ``events.csv``: time, text and the autopilot's boot time of each status line, fault and GPS1 disagreement (the
+  boot time is what the autopilot's own log stamps, to find the moment there; empty in a replay).
 """
 
 from __future__ import annotations
@@ -73,5 +74,5 @@ class FlightLog(CsvLog):
                  alt_amsl_m=round(g.alt_amsl_m, 3), horiz_accuracy_m=round(g.horiz_accuracy_m, 3), satellites=g.satellites,
                  mode=out.decision.mode.value)
 
-    def event(self, t_s: float, text: str) -> None:
-        self.row("events", t_s=t_s, text=text)
+    def event(self, t_s: float, text: str, autopilot_boot_s: float | None = None) -> None:
+        self.row("events", t_s=t_s, text=text, autopilot_boot_s="" if autopilot_boot_s is None else f"{autopilot_boot_s:.3f}")

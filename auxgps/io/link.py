@@ -84,6 +84,13 @@ class BootClock:
             recent.popleft()
         return time_boot_ms / 1000.0 + recent[0][1]
 
+    def boot_s(self, local_s: float) -> float | None:
+        """A local time on the autopilot's boot clock, s (as its own log stamps it); None before the first message."""
+        try:
+            return local_s - self._recent[0][1]
+        except IndexError:  # no arrival yet (or, read from another thread, just after a reboot cleared them)
+            return None
+
     def local(self, time_boot_ms: float) -> float | None:
         """An earlier boot-time stamp (a GPS fix's time) on the local clock, without taking it as an arrival;
         None before the first :meth:`to_local`."""

@@ -2,11 +2,15 @@
 
     python -m auxgps.sim.emulator --world one_cube_1m --port 5760 \\
         [--altitude 15] [--speedup 1] [--fail-gps1-at 60] [--gps2-type 14] [--auto-switch 1] [--log out/emu.json]
+        [--faults config/faults/FILE.yaml]
 
 It serves MAVLink 2 on TCP 127.0.0.1:PORT (one client at a time; it keeps flying when the client leaves and
 accepts the next one), flies the mapping survey of ``SimConfig().mapping`` with ``auxgps.sim.flight``'s
 multirotor, takes GPS_INPUT as GPS2 under ArduPilot's rules (/work/shared/ARDUPILOT.md) and navigates on its
-own estimate, never on the truth. Exit code 0 after landing, 3 after ``--max-seconds``, 130 when interrupted,
+own estimate, never on the truth. ``--faults`` takes the fault file of ``auxgps eval --faults``
+(:mod:`auxgps.sim.faults`): its GPS1 faults (drag, inflated accuracy, dropouts) and telemetry faults (attitude
+stopping, height stuck, every message twice) begin ``at_s`` after take-off; camera faults and reordering are not
+emulated here (they are the camera's and the link's, not the autopilot's). Exit code 0 after landing, 3 after ``--max-seconds``, 130 when interrupted,
 1 for a bad argument; the JSON log is written in every case.
 
 Layout
@@ -63,6 +67,7 @@ from auxgps.sim.flight import (  # noqa: E402
     imu_bias,
     lawnmower_waypoints,
 )
+from auxgps.sim.faults import Fault, load_fault_plan  # noqa: E402
 from auxgps.sim.world import load_world  # noqa: E402
 
 if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":  # pymavlink was imported earlier in this process without MAVLINK20
@@ -485,6 +490,7 @@ class EmulatorOptions:
     survey_size_m: float | None = None  # side of a square survey about home; None: SimConfig().mapping
     seed: int = 1
     max_seconds: float = 1800.0
+    faults: tuple[Fault, ...] = ()  # GPS1 and telemetry faults, at_s after take-off (see the module's docstring)
 
     def validate(self) -> "EmulatorOptions":
         if not 0.5 <= self.altitude_m <= 120.0:
@@ -573,6 +579,25 @@ class VehicleSim:
         self.switch_to_gps2_t_s: float | None = None
         self.landed_t_s: float | None = None
         self.landing_error_m: float | None = None
+        self._faults_said: set[int] = set()
+
+    # -- injected faults -------------------------------------------------------------------------------------
+
+    def faults_active(self, kind: str) -> list[Fault]:
+        """The faults of ``kind`` under way now (their times count from take-off)."""
+        if self.takeoff_t_s is None:
+            return []
+        t = self.t_s - self.takeoff_t_s
+        return [f for f in self.options.faults if f.kind == kind and (f.active(t) or (kind == "gps1_drag" and t >= f.at_s))]
+
+    def _announce_faults(self, t_s: float) -> None:
+        if self.takeoff_t_s is None:
+            return
+        for k, f in enumerate(self.options.faults):
+            if k not in self._faults_said and t_s - self.takeoff_t_s >= f.at_s:
+                self._faults_said.add(k)
+                self.add_event("fault", kind=f.kind, for_s=f.for_s)
+                self._say(MAV.MAV_SEVERITY_INFO, f"EMU: fault {f.kind} for {f.for_s:g} s")
 
     # -- time and configuration -----------------------------------------------------------------------------
 
@@ -649,7 +674,10 @@ class VehicleSim:
     def _gps1_tick(self, t_s: float) -> None:
         self._motion_history.append((self.craft.p_ned_m.copy(), self.craft.v_ned_m_s.copy()))
         if self.step_index % self._gps1_period_steps == 0:
-            self._on_gps_reading(0, self._gps1_reading(), t_s)
+            reading = self._gps1_reading()
+            t_fault = t_s - self.takeoff_t_s if self.takeoff_t_s is not None else None
+            if not any(f.gps1_silent(t_fault) for f in self.faults_active("gps1_dropout")):
+                self._on_gps_reading(0, reading, t_s)
 
     def _gps1_reading(self) -> GpsReading:
         """SITL's GPS1: the truth ``GPS1_LAG_S`` ago plus white noise; fix 6 and 10 satellites, or fix 0 and 3
@@ -658,11 +686,20 @@ class VehicleSim:
         p_then, v_then = self._motion_history[0]  # GPS1_LAG_S ago (or the start)
         p_ned_m = p_then + self._rng_gps1.standard_normal(3) * sigma_m
         v_ned_m_s = v_then + self._rng_gps1.standard_normal(3) * GPS1_VELOCITY_NOISE_M_S
+        h_acc_m = self.noise.gps_horizontal_m
+        t_fault = self.t_s - self.takeoff_t_s if self.takeoff_t_s is not None else 0.0
+        for f in self.faults_active("gps1_drag"):
+            p_ned_m[:2] += f.drag_ne_m(t_fault)
+            if t_fault < f.at_s + f.for_s:
+                v_ned_m_s[:2] += f.drag_velocity_ne_m_s()  # a drag is a velocity too (it fools a velocity check)
+        for f in self.faults_active("gps1_inflated"):
+            p_ned_m[:2] += self._rng_gps1.standard_normal(2) * f.h_acc_m
+            h_acc_m = max(h_acc_m, f.h_acc_m)
         lat_deg, lon_deg, alt_m = self.frame.to_geodetic(p_ned_m)
         enabled = bool(self.params["SIM_GPS1_ENABLE"])
         return GpsReading(GPS1_HEALTHY_FIX if enabled else GPS1_FAILED_FIX, int(round(float(lat_deg) * 1e7)),
                           int(round(float(lon_deg) * 1e7)), float(alt_m), p_ned_m, v_ned_m_s,
-                          GPS1_HEALTHY_SATS if enabled else GPS1_FAILED_SATS, self.noise.gps_horizontal_m)
+                          GPS1_HEALTHY_SATS if enabled else GPS1_FAILED_SATS, h_acc_m)
 
     def _baro_tick(self) -> None:
         """The vertical channel (barometer with the IMU): height and climb rate, sampled and held."""
@@ -681,6 +718,7 @@ class VehicleSim:
         """Advance one ``dt_s``: sensors, GPS selection, mission and physics, then the log sample."""
         t_s = self.t_s
         self._inject_scheduled_failure(t_s)
+        self._announce_faults(t_s)
         self._gps1_tick(t_s)
         self._baro_tick()
         self._update_primary(t_s)
@@ -829,6 +867,7 @@ class VehicleSim:
             "t_s": round(t_s, 3),
             "truth_ned_m": [round(float(x), 4) for x in self.craft.p_ned_m],
             "estimate_ned_m": [round(float(x), 4) for x in p_est],
+            "gps2_ned_m": None if (r2 := self.gps[1].reading(t_s)) is None else [round(float(x), 4) for x in r2.p_ned_m],
             "primary": self.selector.primary if any(g.fix_type(t_s) > FIX_NO_GPS for g in self.gps) else None,
             "gps1_fix": self.gps[0].fix_type(t_s),
             "gps2_fix": self.gps[1].fix_type(t_s),
@@ -838,7 +877,8 @@ class VehicleSim:
             "nav": self.estimator.state(t_s),
         })
 
-    def log_dict(self, exit_reason: str, link_stats: dict[str, int] | None = None) -> dict[str, Any]:
+    def log_dict(self, exit_reason: str, link_stats: dict[str, int] | None = None,
+                 clock_pairs: list[tuple[float, float]] | None = None) -> dict[str, Any]:
         """Everything the JSON log holds."""
         return {
             "exit_reason": exit_reason,
@@ -854,6 +894,7 @@ class VehicleSim:
             "switch_to_gps2_t_s": self.switch_to_gps2_t_s,
             "gps_input": gps_input_stats(self.gps_input_arrivals_t_s),
             "link": link_stats or {},
+            "monotonic_clock": clock_pairs or [],  # (emulated s, monotonic s) pairs
         }
 
     # -- sensors the streams report ----------------------------------------------------------------------------
@@ -998,6 +1039,10 @@ class MavlinkServer:
         self.unix_t0_s = time.time()
         self.link_errors = 0
         self.clock_slips = 0
+        self._stuck_alt_mm: int | None = None  # height_stuck: the relative altitude that repeats
+        # (emulated s, this machine's monotonic s) once an emulated second: to put the companion's logs, stamped
+        # on the same monotonic clock, beside the truth
+        self.clock_pairs: list[tuple[float, float]] = []
         self._senders: dict[str, Callable[[], None]] = {
             name: getattr(self, f"_send_{name}") for name in DEFAULT_RATES_HZ
         }
@@ -1009,6 +1054,7 @@ class MavlinkServer:
             "PARAM_REQUEST_LIST": self._on_param_request_list,
             "COMMAND_LONG": self._on_command_long,
             "REQUEST_DATA_STREAM": self._on_request_data_stream,
+            "STATUSTEXT": self._on_statustext,
         }
 
     # -- the loop ----------------------------------------------------------------------------------------------
@@ -1029,6 +1075,8 @@ class MavlinkServer:
                 wall0_s += (target_t_s - sim.t_s - MAX_LAG_S) / self.speedup
                 self.clock_slips += 1
             self._poll_link()
+            if sim.step_index % round(1.0 / sim.dt_s) == 0:
+                self.clock_pairs.append((round(sim.t_s, 3), round(time.monotonic(), 4)))
             sim.step()
             self._send_due()
         return "landed"
@@ -1065,10 +1113,20 @@ class MavlinkServer:
         if not self.link.connected:
             self.streams.due(self.sim.t_s)  # keep the schedule moving without encoding anything
             return
+        twice = bool(self.sim.faults_active("telemetry_duplicated"))
         for name in self.streams.due(self.sim.t_s):
+            if name == "ATTITUDE" and self.sim.faults_active("attitude_stops"):
+                continue
             self._senders[name]()
+            if twice and name in ("ATTITUDE", "SCALED_IMU", "GLOBAL_POSITION_INT"):
+                self._senders[name]()
 
     # -- handlers ----------------------------------------------------------------------------------------------
+
+    def _on_statustext(self, msg: Any) -> None:
+        """A companion's STATUSTEXT: logged, as ArduPilot's dataflash log keeps them (and routes them to the GCS)."""
+        text = msg.text.decode(errors="replace") if isinstance(msg.text, bytes) else str(msg.text)
+        self.sim.add_event("statustext", severity=int(msg.severity), text=text.rstrip("\x00"))
 
     def _on_param_set(self, msg: Any) -> None:
         name = _param_name(msg.param_id)
@@ -1166,9 +1224,16 @@ class MavlinkServer:
         lat_deg, lon_deg, alt_m = sim.frame.to_geodetic(p_ned_m)
         heading_deg = math.degrees(float(sim.attitude_sample()[2])) % 360.0
         vx, vy, vz = (int(round(v * 100)) for v in v_ned_m_s)
+        relative_alt_mm = int(round(-p_ned_m[2] * 1e3))
+        if sim.faults_active("height_stuck"):
+            if self._stuck_alt_mm is None:
+                self._stuck_alt_mm = relative_alt_mm
+            relative_alt_mm = self._stuck_alt_mm
+        else:
+            self._stuck_alt_mm = None
         self.link.mav.global_position_int_send(
             self._time_boot_ms(), _e7(lat_deg), _e7(lon_deg), int(round(float(alt_m) * 1e3)),
-            int(round(-p_ned_m[2] * 1e3)), vx, vy, vz, int(round(heading_deg * 100)) % 36000)
+            relative_alt_mm, vx, vy, vz, int(round(heading_deg * 100)) % 36000)
 
     def _send_GPS_RAW_INT(self) -> None:
         fields = self._gps_fields(0)
@@ -1260,7 +1325,7 @@ def run_emulator(frame: LocalFrame, options: EmulatorOptions, *, port: int, spee
     finally:
         link.close()
         if log_path is not None:
-            write_log_atomic(log_path, sim.log_dict(reason, server.link_stats()))
+            write_log_atomic(log_path, sim.log_dict(reason, server.link_stats(), server.clock_pairs))
     return EXIT_CODES[reason]
 
 
@@ -1283,6 +1348,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--log", type=Path, help="JSON log, written at the end")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--max-seconds", type=float, default=1800.0, help="hard stop, emulated s (default 1800)")
+    ap.add_argument("--faults", type=Path, help="fault file (auxgps eval --faults): its GPS1 and telemetry faults, "
+                                                "at_s after take-off")
     return ap
 
 
@@ -1301,7 +1368,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         options = EmulatorOptions(altitude_m=args.altitude, fail_gps1_at_s=args.fail_gps1_at,
                                   gps2_type=args.gps2_type, auto_switch=args.auto_switch,
                                   gps_primary=args.gps_primary, survey_size_m=args.survey_size, seed=args.seed,
-                                  max_seconds=args.max_seconds).validate()
+                                  max_seconds=args.max_seconds,
+                                  faults=tuple(load_fault_plan(args.faults).faults) if args.faults else ()).validate()
         frame = load_world(args.world).frame
         return run_emulator(frame, options, port=args.port, speedup=args.speedup, log_path=args.log)
     except AuxGpsError as exc:

@@ -14,10 +14,17 @@ A fault file (``auxgps eval --faults FILE``)::
       - {kind: telemetry_duplicated, at_s: 180, for_s: 3}  # every message twice
       - {kind: telemetry_reordered, at_s: 200, for_s: 3}   # each step's messages after the next step's
       - {kind: gps1_drag, flight: mapping, at_s: 30, for_s: 60, speed_m_s: 0.5, bearing_deg: 45}
+      - {kind: gps1_inflated, flight: mapping, at_s: 40, for_s: 20, h_acc_m: 5}  # a 3D fix, 5 m accuracy and noise
+      - {kind: gps1_dropout, flight: mapping, at_s: 70, for_s: 30, off_s: 1.5, period_s: 5}  # 1.5 s of every 5 s gone
 
 ``at_s`` is on the clock of the flight it applies to (``flight``: "positioning", the default, where GPS1 is lost at
 ``denial.gps_until_s``; or "mapping", the survey), ``for_s`` how long it lasts. A GPS1 drag moves GPS1's reports
 away from the truth at ``speed_m_s`` towards ``bearing_deg`` (from north) for ``for_s``, then holds that offset.
+An inflated GPS1 keeps its 3D fix but reports ``h_acc_m`` and is that noisy; a GPS1 with dropouts sends nothing for
+the first ``off_s`` of every ``period_s``.
+
+The vehicle emulator (``python -m auxgps.sim.emulator --faults FILE``) takes the same file: it applies the GPS1 and
+telemetry faults, whatever their ``flight``, at ``at_s`` after take-off (its one flight maps, then positions).
 """
 
 from __future__ import annotations
@@ -33,7 +40,7 @@ from auxgps.config import _STRICT, NonNegative, Positive, parse_as, read_yaml
 from auxgps.core.events import Attitude, Gps1, Position
 
 Kind = Literal["camera_frozen", "camera_dark_half", "camera_saturated", "camera_blur", "camera_slow", "attitude_stops",
-               "height_stuck", "telemetry_duplicated", "telemetry_reordered", "gps1_drag"]
+               "height_stuck", "telemetry_duplicated", "telemetry_reordered", "gps1_drag", "gps1_inflated", "gps1_dropout"]
 
 
 @config_dataclass(config=_STRICT, frozen=True)
@@ -45,10 +52,28 @@ class Fault:
     fps: Annotated[float, Field(gt=0, le=100)] = 1.0  # camera_slow
     speed_m_s: NonNegative = 0.5  # gps1_drag
     bearing_deg: float = 0.0  # gps1_drag
+    h_acc_m: Positive = 5.0  # gps1_inflated: the accuracy reported, and the noise, one sigma
+    off_s: Positive = 1.5  # gps1_dropout: nothing for this long ...
+    period_s: Positive = 5.0  # ... at the start of every period
     flight: Literal["positioning", "mapping"] = "positioning"
 
     def active(self, t_s: float) -> bool:
         return self.at_s <= t_s < self.at_s + self.for_s
+
+    def drag_ne_m(self, t_s: float) -> np.ndarray:
+        """gps1_drag: the offset of GPS1 from the truth at ``t_s`` (north, east) m."""
+        d_m = self.speed_m_s * min(t_s - self.at_s, self.for_s) if t_s > self.at_s else 0.0
+        b = np.deg2rad(self.bearing_deg)
+        return np.array([d_m * np.cos(b), d_m * np.sin(b)])
+
+    def drag_velocity_ne_m_s(self) -> np.ndarray:
+        """gps1_drag: the velocity of the drag while it lasts (north, east) m/s."""
+        b = np.deg2rad(self.bearing_deg)
+        return self.speed_m_s * np.array([np.cos(b), np.sin(b)])
+
+    def gps1_silent(self, t_s: float) -> bool:
+        """gps1_dropout: True while GPS1 sends nothing."""
+        return self.active(t_s) and (t_s - self.at_s) % self.period_s < self.off_s
 
 
 @config_dataclass(config=_STRICT, frozen=True)
@@ -69,6 +94,7 @@ class FaultInjector:
         self._last_passed_t: dict[int, float] = {}  # camera_slow
         self._stuck_alt: dict[int, float] = {}  # height_stuck
         self._held_events: list = []  # telemetry_reordered
+        self._rngs: dict[int, np.random.Generator] = {}  # gps1_inflated's noise
 
     def frame(self, t_s: float, image_bgr: np.ndarray) -> np.ndarray | None:
         """The image the estimator gets at ``t_s`` (None: the camera delivered no frame)."""
@@ -104,6 +130,10 @@ class FaultInjector:
                 out = [e for e in out for _ in (0, 1)]
             elif f.kind == "gps1_drag" and t_s >= f.at_s:
                 out = [self._dragged(f, e) if isinstance(e, Gps1) and e.fix_type >= 3 else e for e in out]
+            elif f.kind == "gps1_inflated" and f.active(t_s):
+                out = [self._inflated(k, f, e) if isinstance(e, Gps1) and e.fix_type >= 3 else e for e in out]
+            elif f.kind == "gps1_dropout" and f.gps1_silent(t_s):
+                out = [e for e in out if not isinstance(e, Gps1)]
         reorder = any(f.kind == "telemetry_reordered" and f.active(t_s) for f in self.faults)
         if reorder:
             if not self._held_events:
@@ -115,12 +145,18 @@ class FaultInjector:
         return out
 
     @staticmethod
-    def _dragged(f: Fault, e: Gps1) -> Gps1:
-        d_m = f.speed_m_s * min(e.t_s - f.at_s, f.for_s) if e.t_s > f.at_s else 0.0
-        b = np.deg2rad(f.bearing_deg)
-        dlat = np.rad2deg(d_m * np.cos(b) / 6_378_137.0)
-        dlon = np.rad2deg(d_m * np.sin(b) / (6_378_137.0 * np.cos(np.deg2rad(e.lat_deg))))
-        return Gps1(e.t_s, e.fix_type, e.satellites, e.lat_deg + float(dlat), e.lon_deg + float(dlon), e.alt_amsl_m, e.h_acc_m)
+    def _moved(e: Gps1, d_ne_m: np.ndarray, h_acc_m: float | None = None) -> Gps1:
+        dlat = np.rad2deg(d_ne_m[0] / 6_378_137.0)
+        dlon = np.rad2deg(d_ne_m[1] / (6_378_137.0 * np.cos(np.deg2rad(e.lat_deg))))
+        return Gps1(e.t_s, e.fix_type, e.satellites, e.lat_deg + float(dlat), e.lon_deg + float(dlon), e.alt_amsl_m,
+                    e.h_acc_m if h_acc_m is None else h_acc_m)
+
+    def _dragged(self, f: Fault, e: Gps1) -> Gps1:
+        return self._moved(e, f.drag_ne_m(e.t_s))
+
+    def _inflated(self, k: int, f: Fault, e: Gps1) -> Gps1:
+        rng = self._rngs.setdefault(k, np.random.default_rng(1000 + k))
+        return self._moved(e, rng.standard_normal(2) * f.h_acc_m, f.h_acc_m)
 
     def _stuck(self, k: int, e: Position) -> Position:
         alt = self._stuck_alt.setdefault(k, e.alt_above_home_m)
