@@ -145,6 +145,7 @@ def _run(args) -> int:
         connect_timeout_s=args.connect_timeout,
         checkpoint_s=args.checkpoint,
         frame_nice=args.nice,
+        take_primary_on_drift=args.take_primary_on_drift,
     )
     return Companion(load_pipeline_config(args.config), opts).run()
 
@@ -486,6 +487,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--nice", type=_number(int, lambda v: 0 <= v <= 19, "0 to 19"), default=0, metavar="N",
                    help="run frame processing N niceness steps below the GPS_INPUT timer and the link reader, so that a "
                         "busy computer delays frames (dropped, newest kept) before GPS_INPUT (default 0; see docs/faults.md)")
+    p.add_argument("--take-primary-on-drift", action="store_true",
+                   help="opt-in: while GPS1 is found dragged away from the map, make GPS2 the autopilot's primary "
+                        "(GPS_AUTO_SWITCH 0, GPS_PRIMARY 1; restored after). Read the README's risks first")
     p.add_argument("--log-dir", default="out/run", help="CSV logs of fixes, gate decisions, GPS_INPUT and events")
     p.add_argument("--duration", type=_positive(float), help="stop after this many seconds")
     p.add_argument("--rate", type=_positive(float), default=10.0, help="GPS_INPUT rate, Hz (default 10)")

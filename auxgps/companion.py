@@ -41,6 +41,53 @@ def lower_this_thread(steps: int) -> int:
     return nice
 
 
+class PrimaryTakeover:
+    """Opt-in (``--take-primary-on-drift``): while GPS1 is found dragged away from the map and auxgps has a 3D fix,
+    make GPS2 the autopilot's primary (GPS_AUTO_SWITCH 0, GPS_PRIMARY 1); put both back as they were when GPS1 is
+    trusted again, when auxgps loses its fix, and when it stops. ArduPilot by itself keeps a GPS1 that reports a 3D
+    fix as primary, dragged or not. The risks are the README's: a false alarm hands the vehicle to the camera; if
+    auxgps dies without restoring them, GPS2 times out after 4 s and the autopilot, told to use it alone, has no
+    GPS until they are restored."""
+
+    PARAMS = ("GPS_AUTO_SWITCH", "GPS_PRIMARY")
+
+    def __init__(self, link, event) -> None:
+        self.link, self.event = link, event
+        self.saved: dict[str, float] = {}
+        self.taken = False
+        self._asked_t_s = -float("inf")
+
+    def on_param_value(self, msg) -> None:
+        name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else msg.param_id.decode().rstrip("\x00")
+        if name in self.PARAMS and not self.taken:
+            self.saved[name] = float(msg.param_value)
+
+    def update(self, t_s: float, dragged: bool, have_fix: bool) -> None:
+        if len(self.saved) < len(self.PARAMS):
+            if t_s - self._asked_t_s > 5.0:  # what to restore, asked for until known
+                self._asked_t_s = t_s
+                for name in self.PARAMS:
+                    self.link.send_param_request(name)
+            return
+        if dragged and have_fix and not self.taken:
+            self.taken = True
+            self.link.send_param_set("GPS_AUTO_SWITCH", 0)
+            self.link.send_param_set("GPS_PRIMARY", 1)
+            self.event(t_s, "GPS1 dragged: GPS2 (auxgps) made primary (GPS_AUTO_SWITCH 0, GPS_PRIMARY 1), as "
+                            "--take-primary-on-drift asks")
+        elif self.taken and not (dragged and have_fix):
+            self.restore(t_s, "GPS1 trusted again" if not dragged else "auxgps has no fix")
+
+    def restore(self, t_s: float, why: str) -> None:
+        if not self.taken:
+            return
+        self.taken = False
+        for name in self.PARAMS:
+            self.link.send_param_set(name, self.saved[name])
+        self.event(t_s, f"{why}: GPS_AUTO_SWITCH {self.saved['GPS_AUTO_SWITCH']:g} and GPS_PRIMARY "
+                        f"{self.saved['GPS_PRIMARY']:g} restored")
+
+
 @dataclass(frozen=True)
 class RunOptions:
     connect: str
@@ -56,6 +103,7 @@ class RunOptions:
     connect_timeout_s: float = 15.0  # at start, how long the autopilot may take to be there
     checkpoint_s: float = 10.0  # with map_out: the map is also written this often while flying, and at every mode change (0: at the end only)
     frame_nice: int = 0  # frame processing this many niceness steps below the timer and the reader (Linux: per thread)
+    take_primary_on_drift: bool = False  # opt-in: make GPS2 the autopilot's primary while GPS1 is found dragged
 
 
 class Companion:
@@ -85,6 +133,7 @@ class Companion:
         self._last_checkpoint_s = time.monotonic()
         self.checkpoints = 0
         self._dropped_said = (time.monotonic(), 0)  # (when, the camera's dropped count then)
+        self.primary = PrimaryTakeover(self.link, self._event) if opts.take_primary_on_drift else None
 
     def _event(self, t_s: float, text: str) -> None:
         self.log.event(t_s, text, self._decoder.clock.boot_s(t_s))
@@ -95,6 +144,8 @@ class Companion:
         with self._lock:
             if self.recorder is not None:
                 self.recorder.message(msg, arrival_s)
+            if self.primary is not None and msg.get_type() == "PARAM_VALUE":
+                self.primary.on_param_value(msg)
             rec = self._decoder(msg, arrival_s)
             if rec is None:
                 return
@@ -138,6 +189,8 @@ class Companion:
         if out.decision.status:
             self.link.send_statustext(out.decision.status)
             self._event(out.t_s, out.decision.status)
+        if self.primary is not None:
+            self.primary.update(out.t_s, self.estimator.supervisor.dragged_at_s is not None, out.gps.fix_type >= 3)
 
     # -- frames (main thread) -------------------------------------------------------------------------------
 
@@ -223,6 +276,9 @@ class Companion:
         finally:
             self._stop.set()
             timer.join(timeout=2.0)
+            if self.primary is not None:
+                self.primary.restore(time.monotonic(), "auxgps stopping")
+                time.sleep(0.2)  # let the PARAM_SETs leave before the link closes
             self.link.stop()
             self.camera.close()
             self._checkpoint("end of flight")

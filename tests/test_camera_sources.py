@@ -112,3 +112,12 @@ def test_a_live_camera_faster_than_the_frame_loop_gives_the_newest_frame_and_cou
         cam.close()
     assert max(stamp_errors) < 0.02, stamp_errors
     assert cam.dropped >= 50  # about 9 of every 10 frames
+
+
+def test_a_live_frame_keeps_the_drivers_capture_time_when_it_is_on_the_monotonic_clock():
+    from auxgps.io.camera import capture_time
+
+    assert capture_time(1000.30, 1000_120.0) == pytest.approx(1000.12)  # V4L2: stamped at capture, read 0.18 s later
+    assert capture_time(1000.30, 4_000.0) == 1000.30  # a stream position, not this clock
+    assert capture_time(1000.30, 1000_500.0) == 1000.30  # after the read: not a capture time
+    assert capture_time(1000.30, float("nan")) == 1000.30

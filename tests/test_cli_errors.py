@@ -78,3 +78,39 @@ def test_nice_lowers_only_the_thread_that_asks():
     t.join()
     assert seen["new"] == seen["read"] == min(main_nice + 5, 19)
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == main_nice
+
+
+def test_take_primary_on_drift_sets_and_restores_the_autopilots_gps_choice():
+    import types
+
+    from auxgps.companion import PrimaryTakeover
+
+    class Link:
+        def __init__(self):
+            self.sent = []
+
+        def send_param_request(self, name):
+            self.sent.append(("read", name))
+
+        def send_param_set(self, name, value):
+            self.sent.append((name, value))
+
+    link, events = Link(), []
+    p = PrimaryTakeover(link, lambda t, text: events.append(text))
+    p.update(0.0, dragged=True, have_fix=True)  # the values to restore are not known yet: ask, do nothing else
+    assert link.sent == [("read", "GPS_AUTO_SWITCH"), ("read", "GPS_PRIMARY")] and not p.taken
+    for name, value in (("GPS_AUTO_SWITCH", 1.0), ("GPS_PRIMARY", 0.0)):
+        p.on_param_value(types.SimpleNamespace(param_id=name, param_value=value))
+    link.sent.clear()
+    p.update(1.0, dragged=False, have_fix=True)
+    assert link.sent == []
+    p.update(2.0, dragged=True, have_fix=True)
+    assert link.sent == [("GPS_AUTO_SWITCH", 0), ("GPS_PRIMARY", 1)] and events[-1].startswith("GPS1 dragged: GPS2")
+    p.on_param_value(types.SimpleNamespace(param_id="GPS_PRIMARY", param_value=1.0))  # the echo: not what to restore
+    link.sent.clear()
+    p.update(3.0, dragged=True, have_fix=False)  # auxgps lost its fix: give the choice back
+    assert link.sent == [("GPS_AUTO_SWITCH", 1.0), ("GPS_PRIMARY", 0.0)] and "auxgps has no fix" in events[-1]
+    p.update(4.0, dragged=True, have_fix=True)
+    link.sent.clear()
+    p.restore(5.0, "auxgps stopping")
+    assert link.sent == [("GPS_AUTO_SWITCH", 1.0), ("GPS_PRIMARY", 0.0)]

@@ -137,20 +137,25 @@ def gps2_error_m(samples: list[dict], after_t_s: float, lag_s: float = 0.1) -> n
 
 
 @pytest.mark.flight
-@pytest.mark.parametrize("speed_m_s", [pytest.param(0.2, marks=pytest.mark.flight_extra), 0.5,
-                                       pytest.param(1.0, marks=pytest.mark.flight_extra)])
-def test_a_gps1_dragged_while_mapping_is_found_mapping_stops_and_the_vehicle_lands_home(tmp_path, speed_m_s):
+@pytest.mark.parametrize("speed_m_s, take_primary", [(0.5, True), pytest.param(0.2, False, marks=pytest.mark.flight_extra),
+                                                     pytest.param(0.5, False, marks=pytest.mark.flight_extra),
+                                                     pytest.param(1.0, False, marks=pytest.mark.flight_extra)])
+def test_a_gps1_dragged_while_mapping_is_found_mapping_stops_and_the_vehicle_lands_home(tmp_path, speed_m_s, take_primary):
     """The emulator drags GPS1 away at ``speed_m_s`` (bearing 45 deg) from 30 s after take-off for 10 s, then holds
-    the offset; GPS1 fails at 60 s. auxgps must find the drag within 10 s, map nothing after it (so no landmark has
-    more drag in it than GPS1 had then), and position from the map: GPS2 as accurate as usual, landing home."""
+    the offset. auxgps must find the drag within 10 s, map nothing after it (so no landmark has more drag in it than
+    the filter had then), and position from the map: GPS2 as accurate as usual. The vehicle lands home on GPS2:
+    after GPS1 fails at 60 s, or, with --take-primary-on-drift and GPS1 never failing, because auxgps makes GPS2
+    the primary (by itself the autopilot would keep the dragged GPS1, which reports a 3D fix, and land where it
+    says home is)."""
     faults = tmp_path / "drag.yaml"
     faults.write_text(f"faults:\n  - {{kind: gps1_drag, flight: mapping, at_s: 30, for_s: 10, speed_m_s: {speed_m_s}, bearing_deg: 45}}\n")
     port = free_port()
-    emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "12", "--fail-gps1-at", "60", "--faults", str(faults),
+    failure = [] if take_primary else ["--fail-gps1-at", "60"]
+    emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "8", *failure, "--faults", str(faults),
                          "--max-seconds", "600")
     run = None
     try:
-        run = start_run(port, tmp_path / "run")
+        run = start_run(port, tmp_path / "run", *(["--take-primary-on-drift"] if take_primary else []))
         emu.wait(timeout=600)
     finally:
         for p in (emu, run):
@@ -180,6 +185,9 @@ def test_a_gps1_dragged_while_mapping_is_found_mapping_stops_and_the_vehicle_lan
     assert 0.0 < detected_after_s <= 10.0
     assert in_map.max() <= 1.0
     assert not mapping_after, mapping_after
+    if take_primary:
+        assert any(text.startswith("GPS1 dragged: GPS2 (auxgps) made primary") for _, text in events), events
+        assert any(e["event"] == "primary_changed" and e["to"] == 1 for e in log["events"])
     assert np.sqrt(np.mean(err ** 2)) <= 0.3 and err.max() <= 1.0
     assert log["landing_error_m"] <= 1.0
     assert not any(e["event"] == "failsafe" for e in log["events"])
@@ -238,7 +246,7 @@ def test_beside_two_busy_processes_gps2_stays_healthy_and_the_vehicle_lands_home
     port = free_port()
     emu = run = None
     try:
-        emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "12", "--fail-gps1-at", "20", "--max-seconds", "600")
+        emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "8", "--fail-gps1-at", "15", "--max-seconds", "600")
         run = start_run(port, tmp_path / "run")
         emu.wait(timeout=600)
     finally:

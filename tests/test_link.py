@@ -96,3 +96,18 @@ def test_boot_clock_starts_afresh_when_the_autopilot_reboots():
     after = [clock.to_local(int(round(dt * 1000)) + 500, 300.0 + dt + 0.001) for dt in np.arange(0.0, 3.0, 0.02)]
     assert clock.reboots == 1
     np.testing.assert_allclose(after, 300.0 + np.arange(0.0, 3.0, 0.02) + 0.001, atol=0.002)
+
+
+def test_a_message_without_a_stamp_read_late_keeps_the_time_it_was_sent():
+    """SIM_STATE has no time of its own: read at once it is stamped on arrival; read 0.4 s late (a starved reader)
+    it is stamped within 0.025 s of the stamped messages sent beside it (SCALED_IMU: 50 Hz), so a frame rendered at it
+    is not 0.4 s late."""
+    from auxgps.io.link import BootClock
+
+    clock = BootClock()
+    for k in range(50):
+        clock.to_local(1000 * k // 50 + 10_000, 500.0 + k / 50)  # IMU at 50 Hz, on time
+    sent_s = clock.local(10_000 + 980)
+    assert clock.unstamped(sent_s + 0.003) == pytest.approx(sent_s + 0.003)
+    clock.to_local(11_000, 501.0 + 0.4)  # the next IMU sample, read 0.4 s late
+    assert clock.unstamped(501.0 + 0.41) == pytest.approx(501.0 + 0.025, abs=0.005)

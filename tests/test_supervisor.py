@@ -148,3 +148,14 @@ def test_status_lines_come_one_at_a_time_in_order_each_whole():
     said = [s.decide(t, sigma_h_worst_m=0.1, last_correction_t_s=t).status for t in (0.2, 0.5, 1.2, 2.2, 3.2)]
     assert said[0].startswith("GPS1 off track 2.0 m") and said[1] is None and said[2] == "auxgps: positioning"
     assert all(len(line) < 121 for line in said if line)
+
+
+def test_a_gps1_that_keeps_dropping_out_does_not_rejoin():
+    s = Supervisor(SupervisorConfig(rejoin_s=10.0, stale_s=1.0))
+    s.gps1(good(0.0), None, None)
+    s.gps1(Gps1Sample(0.2, 0, 3, P, 99.0), P, COV)
+    for t in np.arange(0.4, 30.0, 0.2):
+        if (t % 5.0) < 1.5:  # silent for 1.5 s of every 5 s
+            continue
+        s.gps1(good(t), P, COV)
+        assert not s.gps1_trusted, t

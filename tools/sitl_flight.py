@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Fly ArduPilot's own copter SITL through a GPS1 failure with auxgps as GPS2, and report the landing.
 
-    ARDUPILOT_SITL=../shared/sitl/arducopter .venv/bin/python tools/sitl_flight.py [--world W] [--out DIR]
+    ARDUPILOT_SITL=../shared/sitl/arducopter .venv/bin/python tools/sitl_flight.py [--world W] [--out DIR] [--busy N]
 
 Starts SITL in a scratch folder (its defaults file beside the binary, plus config/ardupilot/auxgps-gps2.parm),
 connects a ground-station script on SERIAL0 (TCP 5760) and `auxgps run` on SERIAL1 (TCP 5762) with the world
@@ -10,7 +10,13 @@ world (a 20 m x 20 m lawnmower, north-south legs 2 m apart, at 1 m/s), disables 
 the third leg, finishes the survey on GPS2 (more than 3 minutes), switches to RTL and waits for the landing.
 Prints one JSON line: landing_error_m (true distance from home), denied_s, the autopilot's horizontal error after
 the failure (rms, max), and whether GPS2 carried a 3D fix; writes result.json, the truth track (truth.csv) and
-auxgps's logs (run/) to --out. Exit 0 if it landed within 1 m.
+auxgps's logs (run/) to --out. Exit 0 if it landed within 1 m. ``--busy N`` keeps N processes spinning at normal
+priority for the whole flight (a companion computer's other work); ``--run-args "..."`` adds options to
+`auxgps run`. The JSON also gives the intervals between the GPS_INPUT messages sent (ArduPilot's rule: a mean under
+215 ms, never two in a row over 245 ms) and the autopilot's failsafe and EKF STATUSTEXTs. ``--faults FILE`` takes
+the fault file of `auxgps eval --faults` and applies its GPS1 faults through SITL's own parameters, ``at_s`` after
+take-off: a drag by SIM_GPS1_GLTCH_X/Y (set five times a second), an inflated accuracy by SIM_GPS1_ACC (the
+reported accuracy only), dropouts by SIM_GPS1_ENABLE.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ import csv
 import json
 import math
 import os
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -50,6 +57,35 @@ class GroundStation:
         self.last = {}
         self.track: list[tuple[float, float, float]] = []  # (monotonic s, north m, east m): the truth, to score
         self.failed_at_mono: float | None = None  # when GPS1 was disabled, monotonic s
+        self.statustexts: list[str] = []  # the autopilot's, after arming
+        self.faults: list = []  # auxgps.sim.faults.Fault: the GPS1 ones are applied through SITL's parameters
+        self.takeoff_mono: float | None = None
+        self._fault_params: dict[str, float] = {}
+        self._fault_tick_mono = 0.0
+
+    def apply_faults(self):
+        """Set SITL's GPS1 parameters for the faults under way (five times a second at most; only changes sent)."""
+        now = time.monotonic()
+        if not self.faults or self.takeoff_mono is None or now - self._fault_tick_mono < 0.2:
+            return
+        self._fault_tick_mono = now
+        t = now - self.takeoff_mono
+        want = {"SIM_GPS1_GLTCH_X": 0.0, "SIM_GPS1_GLTCH_Y": 0.0, "SIM_GPS1_ACC": 0.3}
+        if self.failed_at_mono is None:
+            want["SIM_GPS1_ENABLE"] = 1.0
+        for f in self.faults:
+            if f.kind == "gps1_drag" and t >= f.at_s:
+                d_n, d_e = f.drag_ne_m(t)
+                want["SIM_GPS1_GLTCH_X"] += math.degrees(d_n / 6_378_137.0)
+                want["SIM_GPS1_GLTCH_Y"] += math.degrees(d_e / (6_378_137.0 * math.cos(math.radians(self.home[0]))))
+            elif f.kind == "gps1_inflated" and f.active(t):
+                want["SIM_GPS1_ACC"] = max(want["SIM_GPS1_ACC"], f.h_acc_m)
+            elif f.kind == "gps1_dropout" and f.gps1_silent(t) and self.failed_at_mono is None:
+                want["SIM_GPS1_ENABLE"] = 0.0
+        for name, value in want.items():
+            if self._fault_params.get(name) != value:
+                self._fault_params[name] = value
+                self.c.mav.param_set_send(1, 1, name.encode(), value, M.MAV_PARAM_TYPE_REAL32)
 
     def pump(self, seconds):
         t_end = time.time() + seconds
@@ -62,8 +98,11 @@ class GroundStation:
             self.last[msg.get_type()] = msg
             if msg.get_type() == "SIM_STATE":
                 self.track.append((time.monotonic(), *self.ne(msg.lat_int / 1e7, msg.lon_int / 1e7)))
+                self.apply_faults()
             if msg.get_type() == "STATUSTEXT" and "Arm" not in msg.text:
                 print("AP:", msg.text, file=sys.stderr, flush=True)
+                if msg.get_srcComponent() == M.MAV_COMP_ID_AUTOPILOT1:
+                    self.statustexts.append(msg.text)
 
     def ne(self, lat_deg, lon_deg):
         n, e, _ = pymap3d.geodetic2ned(lat_deg, lon_deg, self.home[2], *self.home)
@@ -125,7 +164,12 @@ def score_logs(gs: GroundStation, run_dir: Path, failed_at_mono: float, delay_s:
     out_err_ne, _, keep = errors(sent, "t_s", delay_s)
     out_err = np.linalg.norm(out_err_ne, axis=1)
     sigma = np.array([float(r["horiz_accuracy_m"]) for r in sent])[keep]
+    sent_t = np.array([float(r["t_s"]) for r in csv.DictReader(open(run_dir / "gps_input.csv"))])
+    gaps_ms = np.diff(sent_t) * 1e3
+    late = gaps_ms > 245.0
     return {
+        "gps_input_intervals_ms": {"mean": round(float(gaps_ms.mean()), 1), "max": round(float(gaps_ms.max()), 1),
+                                   "over_245": int(late.sum()), "two_in_a_row_over_245": int(np.sum(late[1:] & late[:-1]))},
         "fixes": {**stats(fix_err), "accepted_over_0_5m": int(np.sum(accepted & (fix_err > 0.5))),
                   "error_correlation_ne": lag_correlation(fix_t, fix_err_ne)},
         "gps_input_3d": {**stats(out_err), "within_3sigma": round(float(np.mean(out_err <= 3 * sigma)), 3) if len(out_err) else None},
@@ -151,6 +195,7 @@ def fly(gs: GroundStation) -> dict:
         gs.c.mav.command_long_send(1, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
         gs.pump(3)
     gs.c.mav.command_long_send(1, 1, M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 15)
+    gs.takeoff_mono = time.monotonic()
     gs.pump(20)
     # WPNAV_SPEED (cm/s) paces guided legs and RTL alike; DO_CHANGE_SPEED the current guided target.
     gs.c.mav.param_set_send(1, 1, b"WPNAV_SPEED", SPEED_M_S * 100, M.MAV_PARAM_TYPE_REAL32)
@@ -234,6 +279,9 @@ def main(argv=None) -> int:
     ap.add_argument("--world", default=str(REPO / "config" / "worlds" / "cubes4_0.5m_different.yaml"))
     ap.add_argument("--out", default=str(REPO / "out" / "sitl"))
     ap.add_argument("--serial", action="store_true", help="SERIAL1 on a pseudo-terminal pair at 921600 baud, not TCP 5762")
+    ap.add_argument("--busy", type=int, default=0, help="processes spinning at normal priority for the whole flight")
+    ap.add_argument("--run-args", default="", help="more options for auxgps run, as one string")
+    ap.add_argument("--faults", help="fault file (auxgps eval --faults): its GPS1 faults, at_s after take-off")
     args = ap.parse_args(argv)
     if not args.sitl or not Path(args.sitl).exists():
         print("no SITL binary: set ARDUPILOT_SITL or --sitl", file=sys.stderr)
@@ -250,6 +298,7 @@ def main(argv=None) -> int:
     line = PtyPair() if args.serial else None
     serial = [f"--serial1=uart:{line.a}:921600"] if line else []
     connect = f"{line.b},921600" if line else "tcp:127.0.0.1:5762"
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.busy)]
     sitl = subprocess.Popen([args.sitl, "--model", "quad", "--speedup", "1", "-I0", "--defaults", defaults, *serial,
                              "--home", f"{home[0]},{home[1]},{home[2]},0"], cwd=scratch,
                             stdout=open(out / "sitl.log", "w"), stderr=subprocess.STDOUT)
@@ -257,16 +306,25 @@ def main(argv=None) -> int:
     try:
         time.sleep(2)
         gs = GroundStation(home)
+        if args.faults:
+            from auxgps.sim.faults import load_fault_plan
+
+            gs.faults = [f for f in load_fault_plan(args.faults).faults if f.kind.startswith("gps1_")]
         run = subprocess.Popen([sys.executable, "-m", "auxgps.cli", "run", "--connect", connect,
                                 "--camera", f"sim:{args.world}", "--log-dir", str(out / "run"), "--duration", "1500",
-                                "--gps-delay-ms", str(GPS_DELAY_MS), "--record", str(out / "rec")],
+                                "--gps-delay-ms", str(GPS_DELAY_MS), "--record", str(out / "rec"), *shlex.split(args.run_args)],
                                cwd=REPO, stdout=open(out / "run.log", "w"), stderr=subprocess.STDOUT)
         result = fly(gs)
         run.terminate()
         run.wait(timeout=20)
         write_truth(gs, out / "truth.csv")
         result["auxgps"] = score_logs(gs, out / "run", gs.failed_at_mono, GPS_DELAY_MS / 1000.0)
+        result["autopilot_said"] = [t for t in gs.statustexts if any(w in t for w in ("ailsafe", "EKF", "GPS", "variance"))]
+        result["busy_processes"] = args.busy
     finally:
+        for p in busy:
+            p.kill()
+            p.wait()
         for p in (run, sitl):
             if p is not None and p.poll() is None:
                 p.terminate()

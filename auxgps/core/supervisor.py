@@ -118,6 +118,8 @@ class Supervisor:
     def gps1(self, sample: Gps1Sample, p_est_ned_m: np.ndarray | None, cov_est_ne_m2: np.ndarray | None) -> None:
         """Take a GPS1 report; ``p_est``/``cov_est`` are auxgps's own estimate at the same time (None if none)."""
         cfg = self.cfg
+        if self._gps1 is not None and sample.t_s - self._gps1.t_s > cfg.stale_s:
+            self._agree_since = None  # a silence breaks an agreement (a GPS1 that keeps dropping out never rejoins)
         self._gps1 = sample
         degraded = self._degraded(sample)
         good = degraded is None

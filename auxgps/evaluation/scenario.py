@@ -167,8 +167,14 @@ def _fly(est: Estimator, su: _Setup, traj, sensors: Sensors, fps: float, *, late
                     pending.append((t + latency_s, work, i, rendered, blinded, (time.perf_counter() - t0) * 1e3))
             if progress is not None:
                 progress()
-        if on_output is not None and i % out_every == 0:
-            on_output(i, est.output(t, T_UNIX_0_S + t))
+        if i % out_every == 0 and (on_output is not None or notes is not None):
+            # GPS_INPUT at the companion's rate, in the survey too: the supervisor decides there as it does in flight
+            # (a GPS1 gone silent is noticed here), and its status lines are the flight's events-log lines.
+            out = est.output(t, T_UNIX_0_S + t)
+            if notes is not None and out.decision.status:
+                notes.append((t, out.decision.status))
+            if on_output is not None:
+                on_output(i, out)
 
 
 def _map_flight(su: _Setup, alt_m: float, fps: float, progress) -> tuple[Estimator, np.ndarray, np.ndarray, list]:

@@ -57,11 +57,21 @@ class SimCamera:
         pass
 
 
+def capture_time(read_s: float, pos_msec: float) -> float:
+    """A live frame's time on the monotonic clock: the driver's own buffer timestamp where it gives one (V4L2's,
+    through OpenCV's CAP_PROP_POS_MSEC, is taken on the monotonic clock at capture), else the moment the read
+    returned, which a busy computer delays. Other backends give a position in the stream there, not a time on
+    this clock: told apart by being more than a second from ``read_s`` (or after it)."""
+    stamp_s = pos_msec / 1000.0
+    return stamp_s if np.isfinite(stamp_s) and 0.0 <= read_s - stamp_s < 1.0 else read_s
+
+
 class CaptureCamera:
     """A camera device (an index, a V4L2 path), a GStreamer or RTSP pipeline, or a video file, through OpenCV.
 
-    A live source is read by a thread of its own as fast as it delivers, each frame stamped with the monotonic
-    clock as it arrives, and only the newest is kept: a frame loop slower than the camera gets the newest frame,
+    A live source is read by a thread of its own as fast as it delivers, each frame stamped with the driver's
+    capture time where it gives one on the monotonic clock (:func:`capture_time`), else as it arrives, and only
+    the newest is kept: a frame loop slower than the camera gets the newest frame,
     never one that waited in the driver's queue (stamped late, it would be a fix at the wrong time).
     ``dropped`` counts the frames never read. A file's frames are read in turn, stamped at its frame rate from the
     start. ``size`` (width, height): what the camera model expects; a source giving other frames is a
@@ -104,7 +114,7 @@ class CaptureCamera:
     def _grab(self) -> None:
         while not self._stop.is_set():
             ok, image = self.cap.read()
-            t = time.monotonic()
+            t = capture_time(time.monotonic(), self.cap.get(cv2.CAP_PROP_POS_MSEC))
             if not ok:
                 log.warning("camera %r: no frame", self.source)
                 time.sleep(0.01)

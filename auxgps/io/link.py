@@ -91,6 +91,16 @@ class BootClock:
         except IndexError:  # no arrival yet (or, read from another thread, just after a reboot cleared them)
             return None
 
+    def unstamped(self, arrival_s: float, late_s: float = 0.025) -> float:
+        """The local time of a message without a stamp of its own (SIM_STATE), sent in the stream of stamped ones:
+        its arrival, unless that is more than ``late_s`` after the newest stamped message was sent (this process
+        read late: a busy computer), then that send time plus ``late_s``. A frame rendered at such a message's pose
+        keeps its moment as a camera's own timestamp would, not the moment a starved reader got to it."""
+        if not self._recent or not np.isfinite(self._newest_boot_ms):
+            return arrival_s
+        sent_s = self._newest_boot_ms / 1000.0 + self._recent[0][1]
+        return min(arrival_s, sent_s + late_s) if sent_s >= arrival_s - 1.0 else arrival_s
+
     def local(self, time_boot_ms: float) -> float | None:
         """An earlier boot-time stamp (a GPS fix's time) on the local clock, without taking it as an arrival;
         None before the first :meth:`to_local`."""
@@ -121,9 +131,9 @@ def decode(msg, clock: BootClock, arrival_s: float):
     if kind == "SIM_STATE":
         lat = msg.lat_int / 1e7 if getattr(msg, "lat_int", 0) else msg.lat
         lon = msg.lon_int / 1e7 if getattr(msg, "lon_int", 0) else msg.lon
-        return Truth(arrival_s, lat, lon, float(msg.alt), np.array([msg.roll, msg.pitch, msg.yaw]))
+        return Truth(clock.unstamped(arrival_s), lat, lon, float(msg.alt), np.array([msg.roll, msg.pitch, msg.yaw]))
     if kind == "SIMSTATE":
-        return Truth(arrival_s, msg.lat / 1e7, msg.lng / 1e7, None, np.array([msg.roll, msg.pitch, msg.yaw]))
+        return Truth(clock.unstamped(arrival_s), msg.lat / 1e7, msg.lng / 1e7, None, np.array([msg.roll, msg.pitch, msg.yaw]))
     return None
 
 
@@ -405,6 +415,14 @@ class MavLink:
             int(round(out.lat_deg * 1e7)), int(round(out.lon_deg * 1e7)), float(out.alt_amsl_m),
             float(out.hdop), float(out.vdop), *(float(v) for v in out.vel_ned_m_s),
             float(out.speed_accuracy_m_s), float(out.horiz_accuracy_m), float(out.vert_accuracy_m), int(out.satellites), 0))
+
+    def send_param_set(self, name: str, value: float) -> bool:
+        """PARAM_SET of one of the autopilot's parameters (its PARAM_VALUE echo comes to ``on_message``)."""
+        return self._send(lambda m: m.param_set_encode(self.target_system or 1, 1, name.encode(), float(value),
+                                                        mav.MAV_PARAM_TYPE_REAL32))
+
+    def send_param_request(self, name: str) -> bool:
+        return self._send(lambda m: m.param_request_read_encode(self.target_system or 1, 1, name.encode(), -1))
 
     def send_statustext(self, text: str, severity: int = mav.MAV_SEVERITY_INFO) -> bool:
         return self._send(lambda m: m.statustext_encode(severity, text[:50].encode("ascii", "replace")))
