@@ -11,7 +11,7 @@ the third leg, finishes the survey on GPS2 (more than 3 minutes), switches to RT
 Prints one JSON line: landing_error_m (true distance from home), denied_s, the autopilot's horizontal error after
 the failure (rms, max), and whether GPS2 carried a 3D fix; writes result.json, the truth track (truth.csv) and
 auxgps's logs (run/) to --out. Exit 0 if it landed within 1 m. ``--busy N`` keeps N processes spinning at normal
-priority for the whole flight (a companion computer's other work); ``--run-args "..."`` adds options to
+priority for the whole flight (a companion computer's other work); ``--run-args="..."`` adds options to
 `auxgps run`. The JSON also gives the intervals between the GPS_INPUT messages sent (ArduPilot's rule: a mean under
 215 ms, never two in a row over 245 ms) and the autopilot's failsafe and EKF STATUSTEXTs. ``--faults FILE`` takes
 the fault file of `auxgps eval --faults` and applies its GPS1 faults through SITL's own parameters, ``at_s`` after
