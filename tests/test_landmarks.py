@@ -88,3 +88,17 @@ def test_variance_across_rays_equals_the_projected_covariance():
     np.testing.assert_allclose(lm.variance_across_rays_m2(ids, d), expected, rtol=1e-9)
     down = np.tile([0.0, 0.0, 1.0], (50, 1))  # straight down: the mean horizontal variance
     np.testing.assert_allclose(lm.variance_across_rays_m2(ids, down), (cov[:, 0, 0] + cov[:, 1, 1]) / 2.0, rtol=1e-9)
+
+
+def test_first_seen_times_are_kept_a_loaded_map_counts_as_old_and_demoted_landmarks_are_never_usable():
+    lm = LandmarkMap(capacity=2)
+    info = np.repeat(np.eye(3)[None] * 100.0, 3, axis=0)
+    ids = lm.add(np.zeros((3, 32), np.uint8), np.zeros((3, 3)), info, np.ones(3, np.float16), t_first_s=12.5)  # grows
+    assert np.all(lm.t_first_s[ids] == 12.5) and np.all(np.isneginf(lm.t_first_s[3:]))
+    loaded = LandmarkMap.from_columns({k: v for k, v in lm.columns().items() if k != "t_first_s"})  # a map file's
+    assert np.all(np.isneginf(loaded.t_first_s[: len(loaded)]))
+    lm.n_seen[ids] = 20
+    lm.n_visible[ids] = 20
+    assert lm.usable(ids, 5, 3.0, 0.5).all()
+    lm.demote(ids[:2])
+    assert lm.usable(ids, 5, 3.0, 0.5).tolist() == [False, False, True]

@@ -159,3 +159,16 @@ def test_a_gps1_that_keeps_dropping_out_does_not_rejoin():
             continue
         s.gps1(good(t), P, COV)
         assert not s.gps1_trusted, t
+
+
+def test_landmarks_since_the_last_agreeing_self_check_are_unverified():
+    s = Supervisor(SupervisorConfig(self_check_age_s=10.0))
+    s.gps1(good(0.0), None, None)
+    assert s.unverified_since_s() == -np.inf  # no self-check has agreed: the whole flight's map is unverified
+    cov = np.eye(2) * 0.05**2
+    for t in (20.0, 20.5, 21.0):
+        s.visual_check(t, np.array([0.05, 0.0]), cov)
+    assert s.unverified_since_s() == 11.0  # the last agreeing run (21 s) vouched for what was 10 s old then
+    for t in (40.0, 40.5, 41.0):  # 0.8 m off: found dragged; the agreement time stays
+        line = s.visual_check(t, np.array([0.8, 0.0]), cov)
+    assert line and s.unverified_since_s() == 11.0

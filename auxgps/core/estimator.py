@@ -332,7 +332,8 @@ class Estimator:
             decision = self.filter.update_position(t_meas, p[:2], np.eye(2) * sigma**2, reinit=not settled)
             if decision.rejected_run and settled:
                 self._gps1_sats = None
-                return _joined(note, sup.gps1_rejected(t_meas, float(np.linalg.norm(p[:2] - est.p_ned_m[:2]))))
+                line = sup.gps1_rejected(t_meas, float(np.linalg.norm(p[:2] - est.p_ned_m[:2])))
+                return _joined(note, line, self._demote_unverified() if line else None)
         self.last_correction_t_s = t_meas
         return note
 
@@ -404,8 +405,9 @@ class Estimator:
             nothing = Features(np.zeros((0, 2)), np.zeros((0, self.landmarks.descriptors.shape[1]), np.uint8), np.zeros(0, int))
             return FrameWork(job, nothing, None, NoFix(job.frame.t_s, fault), note)
         # Mapping frames keep full resolution; positioning frames from closer than the map are shrunk to its
-        # scale. A positioning frame looks its candidate landmarks up once; a mapping frame's self-check after the
-        # mapper has changed the map looks them up again.
+        # scale. A positioning frame looks its candidate landmarks up once. A mapping frame is checked before it is
+        # mapped, on landmarks first geotagged self_check_age_s before it: never on those it or the frames just
+        # before added (over new ground they carry whatever drag GPS1 has now, and would agree with it).
         with sw("matching"):
             cand = None if job.mapping else self.localiser.candidates(job.alt_above_origin_m, job.prior)
         scale = 1.0 if job.mapping else self.localiser.detection_scale(job.alt_above_origin_m, job.prior, cand)
@@ -413,10 +415,14 @@ class Estimator:
             feats = self.detector.detect(job.frame.image_bgr, job.R_ned_body @ self.R_body_cam, scale)
         mapped = None
         if job.mapping:
-            with sw("mapping"):
-                mapped = self.mapper.process(feats, NavSample(job.frame.t_s, job.p_gps_ned_m, job.alt_above_origin_m, job.R_ned_body))
+            with sw("matching"):
+                cand = self.localiser.candidates(job.alt_above_origin_m, job.prior,
+                                                 job.frame.t_s - self.supervisor.cfg.self_check_age_s)
         with sw("locating"):
             located = self.localiser.locate(feats, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior, cand)
+        if job.mapping:
+            with sw("mapping"):
+                mapped = self.mapper.process(feats, NavSample(job.frame.t_s, job.p_gps_ned_m, job.alt_above_origin_m, job.R_ned_body))
         return FrameWork(job, feats, mapped, located, note)
 
     def finish_frame(self, work: FrameWork) -> FrameResult:
@@ -436,7 +442,7 @@ class Estimator:
             d = float(np.linalg.norm(d_ne))
             drag = self.supervisor.visual_check(res.t_s, d_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2])
             if drag:
-                common["note"] = _joined(common["note"], drag)
+                common["note"] = _joined(common["note"], drag, self._demote_unverified())
             return FrameResult(t, "self-check", f"{d:.3f} m", self_check_m=d, **common)
         with self.stopwatch("filtering"):
             decision = self.filter.update_position(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2], visual=True)
@@ -446,6 +452,16 @@ class Estimator:
             common["note"] = _joined(common["note"], self._telemetry_fault(
                 f"visual fix refused: {decision.reason} ({self.cfg.fusion.history_s:g} s); frames are late", t))
         return FrameResult(t, "visual", decision.reason, decision=decision, **common)
+
+    def _demote_unverified(self) -> str | None:
+        """GPS1 found dragged: take out of use the landmarks geotagged since the last agreeing self-check could
+        vouch for them (they may carry the drag). The line for the events log."""
+        lm = self.landmarks
+        ids = np.flatnonzero(lm.t_first_s[: len(lm)] > self.supervisor.unverified_since_s())
+        if not len(ids):
+            return None
+        lm.demote(ids)
+        return f"{len(ids)} landmarks geotagged since the last agreeing self-check taken out of use"
 
     def _acquire(self, fix: Fix, common: dict) -> FrameResult:
         """Start the filter on a run of fixes located without a prior that lie on one track."""

@@ -155,8 +155,13 @@ class LandmarkMap:
 
     #: Capacity grows by this factor when full: room for amortised appends at a bounded memory slack.
     GROWTH = 1.5
-    #: The per-landmark arrays, in the order of the map file.
-    COLUMNS = ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "descriptor_range_m", "chi2_mean", "n_visible")
+    #: The per-landmark arrays, in the order of the map file (``t_first_s`` is not saved: see :meth:`from_columns`).
+    COLUMNS = ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "descriptor_range_m", "chi2_mean", "n_visible",
+               "t_first_s")
+    #: Columns a map file may lack, and what they are then.
+    OPTIONAL = {"t_first_s": -np.inf}
+    #: chi2_mean of a landmark :meth:`demote` took out of use (no view agreement is that bad).
+    DEMOTED_CHI2 = np.float16(60000.0)
 
     def __init__(self, capacity: int = 1024, index: GridIndex | None = None, descriptor_bytes: int = DESCRIPTOR_BYTES) -> None:
         self._n = 0
@@ -171,13 +176,18 @@ class LandmarkMap:
         self.descriptor_range_m = np.full(capacity, np.nan, np.float16)
         self.chi2_mean = np.zeros(capacity, np.float16)
         self.n_visible = np.zeros(capacity, np.uint16)
+        # When it was first geotagged, s on the estimator's clock; -inf: before this process (a loaded map).
+        self.t_first_s = np.full(capacity, -np.inf, np.float32)
 
     @classmethod
     def from_columns(cls, columns: dict[str, np.ndarray], capacity: int | None = None) -> "LandmarkMap":
         """A map holding the given rows of every column (a map file's, or another map's), its index built now.
 
-        ``columns``: each of :data:`COLUMNS` with the same number of rows; ``capacity``: rows to allocate (at least
+        ``columns``: each of :data:`COLUMNS` with the same number of rows (those of :data:`OPTIONAL` may be left
+        out: a map file's landmarks were first seen before this process); ``capacity``: rows to allocate (at least
         that number)."""
+        n_rows = len(columns["n_seen"]) if "n_seen" in columns else 0
+        columns = {**{k: np.full(n_rows, v, np.float32) for k, v in cls.OPTIONAL.items()}, **columns}
         missing = [name for name in cls.COLUMNS if name not in columns]
         if missing:
             raise ValueError(f"landmark columns missing: {', '.join(missing)}")
@@ -235,13 +245,14 @@ class LandmarkMap:
         new_cap = max(need, int(self.GROWTH * cap) + 1)
         for name in self.COLUMNS:
             old = getattr(self, name)
-            new = np.full((new_cap,) + old.shape[1:], np.nan if name == "descriptor_range_m" else 0, old.dtype)
+            fill = np.nan if name == "descriptor_range_m" else self.OPTIONAL.get(name, 0)
+            new = np.full((new_cap,) + old.shape[1:], fill, old.dtype)
             new[: self._n] = old[: self._n]
             setattr(self, name, new)
 
     def add(self, descriptors: np.ndarray, p_ned_m: np.ndarray, info: np.ndarray, view_cos: np.ndarray,
-            descriptor_range_m: np.ndarray | float = np.nan) -> np.ndarray:
-        """Append landmarks seen once. info (M, 3, 3) 1/m^2. Returns their ids (M,)."""
+            descriptor_range_m: np.ndarray | float = np.nan, t_first_s: float = -np.inf) -> np.ndarray:
+        """Append landmarks seen once (at ``t_first_s``). info (M, 3, 3) 1/m^2. Returns their ids (M,)."""
         m = len(descriptors)
         self._grow(self._n + m)
         ids = np.arange(self._n, self._n + m)
@@ -253,8 +264,14 @@ class LandmarkMap:
         self.descriptor_range_m[ids] = descriptor_range_m
         self.chi2_mean[ids] = 0.0
         self.n_visible[ids] = 1
+        self.t_first_s[ids] = t_first_s
         self._n += m
         return ids
+
+    def demote(self, ids: np.ndarray) -> None:
+        """Take landmarks out of use for good (geotagged from a GPS1 found dragged): never :meth:`usable` again,
+        and kept, so that ids do not change."""
+        self.chi2_mean[ids] = self.DEMOTED_CHI2
 
     def observe(
         self, ids: np.ndarray, A_obs: np.ndarray, b_obs: np.ndarray, descriptors: np.ndarray, view_cos: np.ndarray, chi2: np.ndarray,

@@ -374,8 +374,9 @@ class Localiser:
             return 1.0
         return float(np.clip(scale, self.cfg.positioning.min_detection_scale, 1.0))
 
-    def candidates(self, alt_above_origin_m: float, prior: PositionPrior | None) -> np.ndarray:
-        """Ids of the usable landmarks within reach of the prior's footprint (all usable ones without a prior)."""
+    def candidates(self, alt_above_origin_m: float, prior: PositionPrior | None, first_seen_before_s: float | None = None) -> np.ndarray:
+        """Ids of the usable landmarks within reach of the prior's footprint (all usable ones without a prior);
+        with ``first_seen_before_s``, only those first geotagged before then (a mapping frame's self-check)."""
         cfg = self.cfg.positioning
         m = self.cfg.mapping
         if prior is None:
@@ -384,6 +385,8 @@ class Localiser:
             reach = max(alt_above_origin_m, 1.0) * self._footprint_tan + 3.0 * prior.sigma_h_m + cfg.footprint_margin_m
             n, e = prior.p_ned_m[0], prior.p_ned_m[1]
             ids = self.map.ids_in_box((n - reach, n + reach), (e - reach, e + reach))
+        if first_seen_before_s is not None:
+            ids = ids[self.map.t_first_s[ids] < first_seen_before_s]
         return ids[self.map.usable(ids, m.min_seen, m.max_mean_chi2, m.min_found_ratio)]
 
     def _match(self, features: Features, cand: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -111,7 +111,8 @@ class Mapper:
             rng_m = np.linalg.norm(p0 - c, axis=1)
             A = ray_information(rays[new], self._sigma_perp(rng_m, sigma_px[new]))
             A[:, 2, 2] += 1.0 / cfg.initial_height_sigma_m**2
-            ids_out[new] = self.map.add(features.descriptors[new], p0, A, rays[new, 2].astype(np.float16), rng_m / features.scale)
+            ids_out[new] = self.map.add(features.descriptors[new], p0, A, rays[new, 2].astype(np.float16), rng_m / features.scale,
+                                        nav.t_s)
             n_added = len(new)
         return MappingResult(n, len(matched_feat), n_added, ids_out)
 

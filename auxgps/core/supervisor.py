@@ -75,6 +75,9 @@ class SupervisorConfig:
     drag_m: float = 0.5
     drag_fixes: int = 3
     drag_window_s: float = 2.0
+    # The self-check uses only landmarks first geotagged this long before the frame: over ground first seen during a
+    # drag, the landmarks of moments before carry the same drag and would agree with it.
+    self_check_age_s: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -103,6 +106,7 @@ class Supervisor:
         self.dragged_at_s: float | None = None  # when GPS1 was found dragged away from the map
         self._h_acc_trusted: list[float] = []  # GPS1's reported accuracy while trusted, m (the latest h_acc_history)
         self.trusted_since_s: float | None = None  # when GPS1 last became trusted
+        self.last_agreement_t_s: float | None = None  # the last self-check run whose mean was within drag_m / 2
 
     def _degraded(self, sample: Gps1Sample) -> str | None:
         """Why GPS1's report is not good enough to trust (None: it is)."""
@@ -173,12 +177,20 @@ class Supervisor:
         to log (None when GPS1 was not trusted anyway)."""
         if not self.gps1_trusted:
             return None
+        return self._distrust_as_dragged(t_s, f"GPS1 off track {distance_m:.1f} m: distrusted, no mapping (a run of its "
+                                              "reports off the filter's track, rejected by its gate)")
+
+    def unverified_since_s(self) -> float:
+        """Landmarks first geotagged after this time were never checked against older ones before GPS1 was found
+        dragged: the last agreeing self-check judged those older than ``self_check_age_s`` then (-inf: none did)."""
+        return -np.inf if self.last_agreement_t_s is None else self.last_agreement_t_s - self.cfg.self_check_age_s
+
+    def _distrust_as_dragged(self, t_s: float, line: str) -> str:
+        """Stop trusting GPS1 until it agrees strictly (see the module's docstring); announce ``line``."""
         self.gps1_trusted = False
         self._agree_since = None
         self.dragged_at_s = t_s
         self._checks.clear()
-        line = (f"GPS1 off track {distance_m:.1f} m: distrusted, no mapping (a run of its reports off the filter's track, "
-                "rejected by its gate)")
         self._say(line, t_s)
         return line
 
@@ -196,16 +208,12 @@ class Supervisor:
         mean = sum(c[1] for c in run) / n
         cov = sum(c[2] for c in run) / (n * n)
         m2 = float(mean @ np.linalg.solve(cov, mean))
+        if float(np.linalg.norm(mean)) <= cfg.drag_m / 2:
+            self.last_agreement_t_s = t_s
         if float(np.linalg.norm(mean)) <= cfg.drag_m or m2 <= cfg.agree_chi2:
             return None
-        self.gps1_trusted = False
-        self._agree_since = None
-        self.dragged_at_s = t_s
-        self._checks.clear()
-        line = (f"GPS1 drifts {np.linalg.norm(mean):.1f} m from map: distrusted, no mapping (mean of the last {n} "
-                "self-checks; spoofing or a failing receiver?)")
-        self._say(line, t_s)
-        return line
+        return self._distrust_as_dragged(t_s, f"GPS1 drifts {np.linalg.norm(mean):.1f} m from map: distrusted, no mapping "
+                                              f"(mean of the last {n} self-checks; spoofing or a failing receiver?)")
 
     def decide(self, t_s: float, *, sigma_h_worst_m: float | None, last_correction_t_s: float | None) -> Decision:
         """The mode at ``t_s`` given the filter's horizontal sigma and the time of its last correction."""
