@@ -69,15 +69,17 @@ class GroundStation:
         if not self.faults or self.takeoff_mono is None or now - self._fault_tick_mono < 0.2:
             return
         self._fault_tick_mono = now
+        from auxgps.sim.faults import offset_deg  # (the repository is on the path once main has run)
+
         t = now - self.takeoff_mono
         want = {"SIM_GPS1_GLTCH_X": 0.0, "SIM_GPS1_GLTCH_Y": 0.0, "SIM_GPS1_ACC": 0.3}
         if self.failed_at_mono is None:
             want["SIM_GPS1_ENABLE"] = 1.0
         for f in self.faults:
-            if f.kind == "gps1_drag" and t >= f.at_s:
-                d_n, d_e = f.drag_ne_m(t)
-                want["SIM_GPS1_GLTCH_X"] += math.degrees(d_n / 6_378_137.0)
-                want["SIM_GPS1_GLTCH_Y"] += math.degrees(d_e / (6_378_137.0 * math.cos(math.radians(self.home[0]))))
+            if f.kind == "gps1_drag" and f.in_effect(t):
+                dlat, dlon = offset_deg(self.home[0], f.drag_ne_m(t))
+                want["SIM_GPS1_GLTCH_X"] += dlat
+                want["SIM_GPS1_GLTCH_Y"] += dlon
             elif f.kind == "gps1_inflated" and f.active(t):
                 want["SIM_GPS1_ACC"] = max(want["SIM_GPS1_ACC"], f.h_acc_m)
             elif f.kind == "gps1_dropout" and f.gps1_silent(t) and self.failed_at_mono is None:

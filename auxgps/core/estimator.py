@@ -409,15 +409,12 @@ class Estimator:
         # mapped, on landmarks first geotagged self_check_age_s before it: never on those it or the frames just
         # before added (over new ground they carry whatever drag GPS1 has now, and would agree with it).
         with sw("matching"):
-            cand = None if job.mapping else self.localiser.candidates(job.alt_above_origin_m, job.prior)
+            old_enough_s = job.frame.t_s - self.supervisor.cfg.self_check_age_s if job.mapping else None
+            cand = self.localiser.candidates(job.alt_above_origin_m, job.prior, old_enough_s)
         scale = 1.0 if job.mapping else self.localiser.detection_scale(job.alt_above_origin_m, job.prior, cand)
         with sw("detection"):
             feats = self.detector.detect(job.frame.image_bgr, job.R_ned_body @ self.R_body_cam, scale)
         mapped = None
-        if job.mapping:
-            with sw("matching"):
-                cand = self.localiser.candidates(job.alt_above_origin_m, job.prior,
-                                                 job.frame.t_s - self.supervisor.cfg.self_check_age_s)
         with sw("locating"):
             located = self.localiser.locate(feats, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior, cand)
         if job.mapping:

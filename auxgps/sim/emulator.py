@@ -588,7 +588,7 @@ class VehicleSim:
         if self.takeoff_t_s is None:
             return []
         t = self.t_s - self.takeoff_t_s
-        return [f for f in self.options.faults if f.kind == kind and (f.active(t) or (kind == "gps1_drag" and t >= f.at_s))]
+        return [f for f in self.options.faults if f.kind == kind and f.in_effect(t)]
 
     def _announce_faults(self, t_s: float) -> None:
         if self.takeoff_t_s is None:

@@ -60,16 +60,18 @@ class Fault:
     def active(self, t_s: float) -> bool:
         return self.at_s <= t_s < self.at_s + self.for_s
 
-    def drag_ne_m(self, t_s: float) -> np.ndarray:
-        """gps1_drag: the offset of GPS1 from the truth at ``t_s`` (north, east) m."""
-        d_m = self.speed_m_s * min(t_s - self.at_s, self.for_s) if t_s > self.at_s else 0.0
-        b = np.deg2rad(self.bearing_deg)
-        return np.array([d_m * np.cos(b), d_m * np.sin(b)])
+    def in_effect(self, t_s: float) -> bool:
+        """Acting on what is sent at ``t_s``: while active, and a drag's offset for good after it (it holds)."""
+        return self.active(t_s) or (self.kind == "gps1_drag" and t_s >= self.at_s)
 
     def drag_velocity_ne_m_s(self) -> np.ndarray:
         """gps1_drag: the velocity of the drag while it lasts (north, east) m/s."""
         b = np.deg2rad(self.bearing_deg)
         return self.speed_m_s * np.array([np.cos(b), np.sin(b)])
+
+    def drag_ne_m(self, t_s: float) -> np.ndarray:
+        """gps1_drag: the offset of GPS1 from the truth at ``t_s`` (north, east) m."""
+        return self.drag_velocity_ne_m_s() * float(np.clip(t_s - self.at_s, 0.0, self.for_s))
 
     def gps1_silent(self, t_s: float) -> bool:
         """gps1_dropout: True while GPS1 sends nothing."""
@@ -79,6 +81,14 @@ class Fault:
 @config_dataclass(config=_STRICT, frozen=True)
 class FaultPlan:
     faults: list[Fault] = Field(default_factory=list)
+
+
+def offset_deg(lat_deg: float, d_ne_m: np.ndarray) -> tuple[float, float]:
+    """A small (north, east) offset in metres at ``lat_deg`` as (latitude, longitude) degrees (a sphere: the offsets
+    faults apply are metres, where its error is micrometres)."""
+    dlat = np.rad2deg(d_ne_m[0] / 6_378_137.0)
+    dlon = np.rad2deg(d_ne_m[1] / (6_378_137.0 * np.cos(np.deg2rad(lat_deg))))
+    return float(dlat), float(dlon)
 
 
 def load_fault_plan(path) -> FaultPlan:
@@ -128,7 +138,7 @@ class FaultInjector:
                 out = [self._stuck(k, e) if isinstance(e, Position) else e for e in out]
             elif f.kind == "telemetry_duplicated" and f.active(t_s):
                 out = [e for e in out for _ in (0, 1)]
-            elif f.kind == "gps1_drag" and t_s >= f.at_s:
+            elif f.kind == "gps1_drag" and f.in_effect(t_s):
                 out = [self._dragged(f, e) if isinstance(e, Gps1) and e.fix_type >= 3 else e for e in out]
             elif f.kind == "gps1_inflated" and f.active(t_s):
                 out = [self._inflated(k, f, e) if isinstance(e, Gps1) and e.fix_type >= 3 else e for e in out]
@@ -146,9 +156,8 @@ class FaultInjector:
 
     @staticmethod
     def _moved(e: Gps1, d_ne_m: np.ndarray, h_acc_m: float | None = None) -> Gps1:
-        dlat = np.rad2deg(d_ne_m[0] / 6_378_137.0)
-        dlon = np.rad2deg(d_ne_m[1] / (6_378_137.0 * np.cos(np.deg2rad(e.lat_deg))))
-        return Gps1(e.t_s, e.fix_type, e.satellites, e.lat_deg + float(dlat), e.lon_deg + float(dlon), e.alt_amsl_m,
+        dlat, dlon = offset_deg(e.lat_deg, d_ne_m)
+        return Gps1(e.t_s, e.fix_type, e.satellites, e.lat_deg + dlat, e.lon_deg + dlon, e.alt_amsl_m,
                     e.h_acc_m if h_acc_m is None else h_acc_m)
 
     def _dragged(self, f: Fault, e: Gps1) -> Gps1:
