@@ -123,6 +123,27 @@ def test_each_injected_fault_is_named_once_and_never_becomes_a_confident_wrong_f
     assert figures["fused"]["within_3sigma"] >= 0.97
 
 
+def test_a_slow_drag_found_late_is_undone_from_the_map(tmp_path):
+    """GPS1 dragged at 0.2 m/s during the survey is found only once its drift from the older map reaches
+    drag_m (0.5 m), seconds after it began; meanwhile it has refined landmarks already mapped and geotagged new ones.
+    The map goes back to what it was at the last agreeing self-check (which allowed drag_m / 2): no landmark keeps
+    more of the drag than that, beside its own error (at most 0.17 m on this world without a drag). Before the
+    undo, landmarks were left 0.52 m off and a fix 0.68 m off was accepted."""
+    faults = tmp_path / "drag.yaml"
+    faults.write_text("faults:\n  - {kind: gps1_drag, flight: mapping, at_s: 30, for_s: 400, speed_m_s: 0.2, bearing_deg: 45}\n")
+    out = tmp_path / "drag.json"
+    subprocess.run([sys.executable, "-m", "auxgps.cli", "eval", "--world", "cubes4_0.5m_different", "--altitude", "15",
+                    "--faults", str(faults), "--quiet", "--json", str(out)], cwd=REPO, check=True, capture_output=True, timeout=600)
+    figures = json.loads(out.read_text())
+    lines = [line for _, line in figures["notes"]]
+    found = [line for line in lines if "GPS1 drifts" in line and "undone" in line]
+    assert found and "put back" in found[0], lines
+    drag_m = 0.5
+    assert figures["landmarks"]["max_m"] <= drag_m / 2 + 0.2, figures["landmarks"]
+    assert figures["gate"]["accepted_over_0_5m"] == 0
+    assert figures["fused"]["within_3sigma"] >= 0.97
+
+
 def gps2_error_m(samples: list[dict], after_t_s: float, lag_s: float = 0.1) -> np.ndarray:
     """GPS2's horizontal distance from the truth ``lag_s`` before (GPS_INPUT describes the vehicle 0.1 s ago), at
     each log sample after ``after_t_s`` with a GPS2 reading, m."""

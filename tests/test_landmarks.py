@@ -102,3 +102,54 @@ def test_first_seen_times_are_kept_a_loaded_map_counts_as_old_and_demoted_landma
     assert lm.usable(ids, 5, 3.0, 0.5).all()
     lm.demote(ids[:2])
     assert lm.usable(ids, 5, 3.0, 0.5).tolist() == [False, False, True]
+
+
+def _observe_at(lm, ids, point_ned_m, t_s, rng):
+    A = np.repeat(np.eye(3)[None] * 400.0, len(ids), 0)
+    b = A @ np.asarray(point_ned_m, float)
+    lm.count_visible(ids, t_s)
+    lm.observe(ids, A, b, rng.integers(0, 256, (len(ids), 32), dtype=np.uint8), np.full(len(ids), 0.99, np.float16),
+               np.full(len(ids), 0.5), 7.0, t_s)
+
+
+def test_roll_back_puts_every_column_and_the_index_back_as_they_were_and_takes_newer_landmarks_out_of_use():
+    rng = np.random.default_rng(3)
+    lm = random_map(200, rng)
+    lm.keep_journal(30.0)
+    ids = np.arange(0, 200, 3)
+    _observe_at(lm, ids, [1.0, 2.0, -1.0], 10.0, rng)
+    before = {k: v.copy() for k, v in lm.columns().items()}
+    # After 10 s: older landmarks observed from a dragged pose (twice, some in both), and new ones geotagged.
+    _observe_at(lm, ids[::2], [30.0, -20.0, 0.0], 11.0, rng)
+    _observe_at(lm, ids[:20], [31.0, -21.0, 0.0], 12.0, rng)
+    new = lm.add(rng.integers(0, 256, (5, 32), dtype=np.uint8), np.full((5, 3), 40.0), np.repeat(np.eye(3)[None], 5, 0),
+                 np.ones(5, np.float16), t_first_s=12.0)
+    restored, dropped, complete = lm.roll_back(10.0)
+    assert complete
+    assert np.array_equal(dropped, new) and np.array_equal(restored, np.union1d(ids[::2], ids[:20]))
+    after = lm.columns()
+    for name, value in before.items():
+        np.testing.assert_array_equal(after[name][:200], value, err_msg=name)
+    assert not lm.usable(new, 1, 3.0, 0.0).any()
+    for north, east in [((0.0, 5.0), (-5.0, 5.0)), ((25.0, 35.0), (-25.0, -15.0)), ((-60.0, 60.0), (-60.0, 60.0))]:
+        assert np.array_equal(lm.ids_in_box(north, east), lm.ids_in_box_scan(north, east))
+
+
+def test_a_journal_says_when_it_cannot_reach_back_and_keeps_only_its_span():
+    rng = np.random.default_rng(4)
+    lm = random_map(50, rng)
+    lm.keep_journal(5.0)
+    for t in np.arange(0.0, 20.0, 1.0):
+        _observe_at(lm, np.arange(10), [t, 0.0, 0.0], float(t), rng)
+    assert lm.journal_bytes < 6 * 2 * 10 * 120  # about 6 frames of 10 landmarks, two entries each
+    p_at_16 = lm.p_ned_m[:10].copy()
+    _, _, complete = lm.roll_back(16.0)  # inside the span
+    assert complete
+    _observe_at(lm, np.arange(10), [50.0, 0.0, 0.0], 17.0, rng)
+    _observe_at(lm, np.arange(10), [50.0, 0.0, 0.0], 18.0, rng)
+    restored, _, complete = lm.roll_back(2.0)  # beyond it: what it kept is undone, and it says it could not do more
+    assert not complete and np.array_equal(restored, np.arange(10))
+    assert np.abs(lm.p_ned_m[:10] - p_at_16).max() > 0.0  # the changes it had let go of stay
+    no_journal = random_map(5, rng)
+    _observe_at(no_journal, np.arange(5), [1.0, 0.0, 0.0], 1.0, rng)
+    assert no_journal.journal_bytes == 0 and no_journal.roll_back(0.0)[0].size == 0

@@ -191,6 +191,8 @@ class Estimator:
         self.mapper = Mapper(cfg, self.camera, self.R_body_cam, self.landmarks, self.stopwatch)
         self.localiser = Localiser(cfg, self.camera, self.R_body_cam, self.landmarks, self.stopwatch)
         self.supervisor = Supervisor(self.options.supervisor)
+        self.landmarks.keep_journal(self.supervisor.cfg.undo_span_s)
+        self._undo_found_at_s: float | None = None  # GPS1 found dragged by the gate: the map is to be undone
         self.filter: NavFilter | None = None
         self._attitudes: deque[Attitude] = deque(maxlen=200)
         # Home's height above the origin: 0 for an origin found below GPS1's first fix, and taken as 0 for a loaded
@@ -333,7 +335,11 @@ class Estimator:
             if decision.rejected_run and settled:
                 self._gps1_sats = None
                 line = sup.gps1_rejected(t_meas, float(np.linalg.norm(p[:2] - est.p_ned_m[:2])))
-                return _joined(note, line, self._demote_unverified() if line else None)
+                if line:
+                    # Undone by the next finish_frame: the thread that maps (a companion's telemetry arrives on
+                    # another), and after the frame in hand, which may have mapped from this GPS1 already.
+                    self._undo_found_at_s = t_meas
+                return _joined(note, line)
         self.last_correction_t_s = t_meas
         return note
 
@@ -428,6 +434,9 @@ class Estimator:
         t = job.frame.t_s
         note = _joined(self._pending_note, work.note)
         self._pending_note = None
+        if self._undo_found_at_s is not None:
+            note = _joined(note, self._undo_unverified(self._undo_found_at_s))
+            self._undo_found_at_s = None
         common = dict(mapping=job.mapping, located=res, mapped=work.mapped, features=work.features, note=note)
         if not isinstance(res, Fix):
             return FrameResult(t, "none", res.reason, **common)
@@ -439,7 +448,7 @@ class Estimator:
             d = float(np.linalg.norm(d_ne))
             drag = self.supervisor.visual_check(res.t_s, d_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2])
             if drag:
-                common["note"] = _joined(common["note"], drag, self._demote_unverified())
+                common["note"] = _joined(common["note"], drag, self._undo_unverified(res.t_s))
             return FrameResult(t, "self-check", f"{d:.3f} m", self_check_m=d, **common)
         with self.stopwatch("filtering"):
             decision = self.filter.update_position(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2], visual=True)
@@ -450,15 +459,17 @@ class Estimator:
                 f"visual fix refused: {decision.reason} ({self.cfg.fusion.history_s:g} s); frames are late", t))
         return FrameResult(t, "visual", decision.reason, decision=decision, **common)
 
-    def _demote_unverified(self) -> str | None:
-        """GPS1 found dragged: take out of use the landmarks geotagged since the last agreeing self-check could
-        vouch for them (they may carry the drag). The line for the events log."""
-        lm = self.landmarks
-        ids = np.flatnonzero(lm.t_first_s[: len(lm)] > self.supervisor.unverified_since_s())
-        if not len(ids):
+    def _undo_unverified(self, t_s: float) -> str | None:
+        """GPS1 found dragged at ``t_s``: put the map back as it was when the last agreeing self-check could vouch
+        for it. Landmarks geotagged since are taken out of use, older ones seen since get their earlier position
+        back (they may carry the drag either way). The line for the events log."""
+        since = self.supervisor.unverified_since_s()
+        restored, dropped, complete = self.landmarks.roll_back(since)
+        if not len(restored) and not len(dropped):
             return None
-        lm.demote(ids)
-        return f"{len(ids)} landmarks geotagged since the last agreeing self-check taken out of use"
+        span = f"the last {t_s - since:.0f} s" if np.isfinite(since) else "this flight"
+        line = f"map of {span} undone: {len(dropped)} landmarks out of use, {len(restored)} put back"
+        return line if complete else f"{line} (changes older than {self.supervisor.cfg.undo_span_s:g} s stay)"
 
     def _acquire(self, fix: Fix, common: dict) -> FrameResult:
         """Start the filter on a run of fixes located without a prior that lie on one track."""

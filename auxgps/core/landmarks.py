@@ -5,11 +5,17 @@ position (the inverse covariance, upper triangle), how often it was seen, and ho
 that gave its descriptor and at what range it was taken (its scale). Positions are refined in information form, so a landmark seen from several places
 gets its height as well as its ground position.
 
+Recent changes can be kept in a journal (:meth:`LandmarkMap.keep_journal`) and undone back to a time
+(:meth:`LandmarkMap.roll_back`): a GPS1 found dragged late has refined landmarks already mapped as well as added
+new ones, and both must go back to what they were before the drag.
+
 Landmarks near a place are found through a :class:`GridIndex` (a uniform north/east grid kept as (cell, id)
 pairs sorted by cell), so the cost of a box query grows with what is in the box, not with the size of the map.
 """
 
 from __future__ import annotations
+
+from collections import deque
 
 import numpy as np
 
@@ -162,6 +168,9 @@ class LandmarkMap:
     OPTIONAL = {"t_first_s": -np.inf}
     #: chi2_mean of a landmark :meth:`demote` took out of use (no view agreement is that bad).
     DEMOTED_CHI2 = np.float16(60000.0)
+    #: What :meth:`observe` changes, and :meth:`count_visible`: what the journal keeps of each before the change.
+    OBSERVED = ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "descriptor_range_m", "chi2_mean")
+    COUNTED = ("n_visible",)
 
     def __init__(self, capacity: int = 1024, index: GridIndex | None = None, descriptor_bytes: int = DESCRIPTOR_BYTES) -> None:
         self._n = 0
@@ -178,6 +187,9 @@ class LandmarkMap:
         self.n_visible = np.zeros(capacity, np.uint16)
         # When it was first geotagged, s on the estimator's clock; -inf: before this process (a loaded map).
         self.t_first_s = np.full(capacity, -np.inf, np.float32)
+        self._journal: deque[tuple[float, np.ndarray, dict[str, np.ndarray]]] | None = None
+        self._journal_span_s = 0.0
+        self._journal_forgot_s = -np.inf  # the newest change the journal has let go of (it cannot undo to before it)
 
     @classmethod
     def from_columns(cls, columns: dict[str, np.ndarray], capacity: int | None = None) -> "LandmarkMap":
@@ -212,6 +224,51 @@ class LandmarkMap:
         """Forget every landmark (a map refused after loading); capacity is kept."""
         self._n = 0
         self.index.invalidate()
+        if self._journal is not None:
+            self._journal.clear()
+            self._journal_forgot_s = -np.inf
+
+    # -- the journal of recent changes ----------------------------------------------------------------------
+
+    def keep_journal(self, span_s: float) -> None:
+        """From now on, keep what :meth:`observe` and :meth:`count_visible` change for ``span_s`` seconds (of the
+        times they are given), so that :meth:`roll_back` can undo it. 0: keep none."""
+        self._journal = deque() if span_s > 0 else None
+        self._journal_span_s = float(span_s)
+        self._journal_forgot_s = -np.inf
+
+    @property
+    def journal_bytes(self) -> int:
+        """Bytes the journal holds (0 without one)."""
+        if not self._journal:
+            return 0
+        return sum(ids.nbytes + sum(v.nbytes for v in prior.values()) for _, ids, prior in self._journal)
+
+    def _record(self, t_s: float | None, ids: np.ndarray, names: tuple[str, ...]) -> None:
+        if self._journal is None or t_s is None or not len(ids):
+            return
+        self._journal.append((float(t_s), ids.astype(np.int32), {name: getattr(self, name)[ids].copy() for name in names}))
+        while self._journal and self._journal[0][0] < t_s - self._journal_span_s:
+            self._journal_forgot_s = max(self._journal_forgot_s, self._journal.popleft()[0])
+
+    def roll_back(self, since_t_s: float) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Undo every journalled change made after ``since_t_s``, newest first, and take out of use (:meth:`demote`)
+        the landmarks first geotagged after it. Returns the ids of older landmarks put back as they were, the ids
+        taken out of use, and whether the journal reached back that far (False: changes older than its span could
+        not be undone; the newer ones were)."""
+        touched = []
+        while self._journal and self._journal[-1][0] > since_t_s:
+            _, ids, prior = self._journal.pop()
+            p_before = self.p_ned_m[ids].copy()
+            for name, value in prior.items():
+                getattr(self, name)[ids] = value
+            if "p_ned_m" in prior:
+                self.index.note_moved(ids, p_before, self.p_ned_m[ids])
+            touched.append(ids)
+        new = np.flatnonzero(self.t_first_s[: self._n] > since_t_s)
+        self.demote(new)
+        restored = np.setdiff1d(np.concatenate(touched) if touched else np.zeros(0, int), new).astype(int)
+        return restored, new, since_t_s >= self._journal_forgot_s
 
     @property
     def nbytes(self) -> int:
@@ -221,11 +278,12 @@ class LandmarkMap:
 
     def memory_bytes(self) -> dict:
         """What the running map holds, bytes: ``columns`` (used rows), ``slack`` (allocated, unused rows),
-        ``index`` (the spatial index) and their ``total``."""
+        ``index`` (the spatial index), ``journal`` (recent changes, :meth:`keep_journal`) and their ``total``."""
         used = self.nbytes
         allocated = sum(a.nbytes for a in self._columns())
         index = self.index.nbytes
-        return {"columns": used, "slack": allocated - used, "index": index, "total": allocated + index}
+        journal = self.journal_bytes
+        return {"columns": used, "slack": allocated - used, "index": index, "journal": journal, "total": allocated + index + journal}
 
     def reindex(self) -> None:
         """Rebuild the spatial index at the next query (after positions were written directly)."""
@@ -275,14 +333,16 @@ class LandmarkMap:
 
     def observe(
         self, ids: np.ndarray, A_obs: np.ndarray, b_obs: np.ndarray, descriptors: np.ndarray, view_cos: np.ndarray, chi2: np.ndarray,
-        descriptor_range_m: np.ndarray | float = np.nan,
+        descriptor_range_m: np.ndarray | float = np.nan, t_s: float | None = None,
     ) -> None:
         """Fuse one observation into each landmark in ``ids`` (unique).
 
         The observation is in information form: ``A_obs`` (M, 3, 3) 1/m^2 and ``b_obs = A_obs @ point`` (M, 3);
         ``chi2`` (M,) is its squared Mahalanobis innovation, averaged into the landmark's consistency. The
-        landmark keeps the descriptor of its most nadir view, and that view's ``descriptor_range_m``.
+        landmark keeps the descriptor of its most nadir view, and that view's ``descriptor_range_m``. ``t_s``: when
+        it was seen, for the journal (None: not journalled).
         """
+        self._record(t_s, ids, self.OBSERVED)
         n_before = self.n_seen[ids].astype(np.float32)
         self.chi2_mean[ids] = (self.chi2_mean[ids].astype(np.float32) * (n_before - 1) + chi2) / n_before
         A = unpack_sym(self.info_packed[ids])
@@ -298,8 +358,10 @@ class LandmarkMap:
         self.view_cos[ids[better]] = view_cos[better]
         self.descriptor_range_m[ids[better]] = np.broadcast_to(descriptor_range_m, ids.shape)[better]
 
-    def count_visible(self, ids: np.ndarray) -> None:
-        """Count one more frame in which these landmarks were predicted inside the image."""
+    def count_visible(self, ids: np.ndarray, t_s: float | None = None) -> None:
+        """Count one more frame (taken at ``t_s``, for the journal) in which these landmarks were predicted inside
+        the image."""
+        self._record(t_s, ids, self.COUNTED)
         self.n_visible[ids] = np.minimum(self.n_visible[ids].astype(np.int32) + 1, np.iinfo(np.uint16).max)
 
     def usable(self, ids: np.ndarray, min_seen: int, max_chi2: float, min_found_ratio: float) -> np.ndarray:

@@ -86,7 +86,7 @@ class Mapper:
             uv_lm, in_front = pose.project(self.camera, self.map.p_ned_m[cand].astype(float))
             keep = in_front & self.camera.in_image(np.nan_to_num(uv_lm, nan=-1e6), -cfg.edge_margin_px)
             cand, uv_lm = cand[keep], uv_lm[keep]
-            self.map.count_visible(cand[self.camera.in_image(uv_lm)])
+            self.map.count_visible(cand[self.camera.in_image(uv_lm)], nav.t_s)
             if len(cand):
                 with self.stopwatch("matching"):
                     matched_feat, matched_lm, chi2 = self._guided_match(features, cand, uv_lm, rays, c, sigma_px)
@@ -98,7 +98,7 @@ class Mapper:
             A = ray_information(d, self._sigma_perp(rng_m, sigma_px[matched_feat]))
             b = np.einsum("nij,j->ni", A, c)
             self.map.observe(matched_lm, A, b, features.descriptors[matched_feat], d[:, 2].astype(np.float16), chi2,
-                             rng_m / features.scale)
+                             rng_m / features.scale, nav.t_s)
             ids_out[matched_feat] = matched_lm
 
         # Unmatched features become new landmarks on the ground plane, their height free within a few metres

@@ -78,6 +78,9 @@ class SupervisorConfig:
     # The self-check uses only landmarks first geotagged this long before the frame: over ground first seen during a
     # drag, the landmarks of moments before carry the same drag and would agree with it.
     self_check_age_s: float = 10.0
+    # How far back the map's changes are kept, so that a drag found late can be undone back to the last agreeing
+    # self-check (which judged the map self_check_age_s older than itself): a few MB at 20 mapped frames a second.
+    undo_span_s: float = 40.0
 
 
 @dataclass(frozen=True)
