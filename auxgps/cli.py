@@ -72,10 +72,12 @@ def summary_table(summary: dict) -> str:
 def _eval(args) -> int:
     import dataclasses
 
-    from auxgps.evaluation.driver import evaluate
+    from auxgps.evaluation.driver import MissionRun, evaluate
     from auxgps.sim.faults import load_fault_plan
     from auxgps.sim.flight import load_sim_config
 
+    if bool(args.mission) != (args.gps_lost_at_waypoint is not None):
+        raise ConfigError("--mission and --gps-lost-at-waypoint go together: the mission, and the item GPS1 is lost at")
     sim = load_sim_config(args.sim_config)
     if args.faults:
         sim = dataclasses.replace(sim, faults=list(load_fault_plan(args.faults).faults))
@@ -90,6 +92,7 @@ def _eval(args) -> int:
         sim=sim,
         workers=args.workers,
         progress=not args.quiet,
+        mission=MissionRun(args.mission, args.speed_m_s, args.gps_lost_at_waypoint) if args.mission else None,
     )
     print(summary_table(summary))
     for t_s, line in summary["notes"][:40]:
@@ -470,6 +473,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--runs", type=_positive(int), default=1, help="seeded runs (default 1)")
     p.add_argument("--faults", help="a YAML list of faults to inject into the positioning flight (auxgps/sim/faults.py; "
                                     "config/faults/all.yaml has one of each)")
+    p.add_argument("--mission", help="fly this mission (.waypoints, QGC WPL 110, or a QGroundControl .plan) once instead: "
+                                     "mapping with GPS1, GPS1 lost at --gps-lost-at-waypoint, the rest scored; every "
+                                     "height at --altitude")
+    p.add_argument("--speed-m-s", type=_positive(float), default=5.0, help="with --mission: its speed, m/s (default 5)")
+    p.add_argument("--gps-lost-at-waypoint", type=_positive(int), help="with --mission: the item (its number in the file, "
+                                                                       "home being 0) on reaching which GPS1 is lost")
     add_eval_options(p)
     p.set_defaults(func=_eval)
 

@@ -17,10 +17,12 @@ from auxgps.core.camera import CameraPose, PinholeCamera, camera_from_config
 from auxgps.core.estimator import Estimator, EstimatorOptions, FrameResult
 from auxgps.core.events import Frame
 from auxgps.core.geometry import R_body_cam_from_mount
+from auxgps.errors import ConfigError
+from auxgps.io.mission import Mission
 from auxgps.sim.faults import FaultInjector, FaultPlan
-from auxgps.sim.flight import SimConfig, fly, imu_bias, lawnmower_waypoints
-from auxgps.sim.sensors import Sensors
+from auxgps.sim.flight import SimConfig, fly, imu_bias, lawnmower_waypoints, mission_waypoints_ned
 from auxgps.sim.render import Renderer
+from auxgps.sim.sensors import Sensors
 from auxgps.sim.world import World
 
 
@@ -177,38 +179,124 @@ def _fly(est: Estimator, su: _Setup, traj, sensors: Sensors, fps: float, *, late
                 on_output(i, out)
 
 
-def _map_flight(su: _Setup, alt_m: float, fps: float, progress) -> tuple[Estimator, np.ndarray, np.ndarray, list]:
-    """Phase 1: the mapping survey with GPS. Returns the estimator that flew it (its map), landmark errors (used,
-    seen > 10) and frame times."""
-    sim, pipeline = su.sim, su.pipeline
-    traj = fly(lawnmower_waypoints(sim.mapping, alt_m), sim.mapping.speed_m_s, sim.vehicle, su.rng_fly_map, sim.dt_s)
-    est = Estimator(pipeline, su.options, frame=su.world.frame)
-    truths_of: dict[int, list[np.ndarray]] = {}
-    mapping_ms = []
+class _MapTruth:
+    """The truth behind the landmarks a flight maps: the true points behind the features that fed each one."""
 
-    def on_frame(seen: _Seen) -> None:
+    def __init__(self) -> None:
+        self.truths_of: dict[int, list[np.ndarray]] = {}
+        self.mapping_ms: list[float] = []
+
+    def on_frame(self, seen: _Seen) -> None:
         mapped = seen.result.mapped
         if mapped is None:
             return
-        mapping_ms.append(seen.ms)
+        self.mapping_ms.append(seen.ms)
         fed = np.flatnonzero(mapped.landmark_ids >= 0)
         for lid, p in zip(mapped.landmark_ids[fed], seen.rendered.true_points_at(seen.result.features.uv_px[fed])):
-            truths_of.setdefault(int(lid), []).append(p)
+            self.truths_of.setdefault(int(lid), []).append(p)
 
+    def errors(self, est: Estimator, pipeline: PipelineConfig) -> tuple[np.ndarray, np.ndarray]:
+        """Landmark errors (estimate - truth, north/east, m): those positioning uses (seen more than 10 times, views
+        consistent), and all seen more than 10 times. A landmark's truth is the median of its true points."""
+        lm = est.landmarks
+        m = pipeline.mapping
+        seen = np.flatnonzero(lm.n_seen[: len(lm)] >= m.min_seen)
+        used = seen[lm.usable(seen, m.min_seen, m.max_mean_chi2, m.min_found_ratio)]
+
+        def err(ids):
+            return np.array([lm.p_ned_m[j, :2] - np.median(self.truths_of[int(j)], axis=0)[:2] for j in ids]).reshape(-1, 2)
+
+        return err(used), err(seen)
+
+
+def _map_flight(su: _Setup, alt_m: float, fps: float, progress) -> tuple[Estimator, _MapTruth]:
+    """Phase 1: the mapping survey with GPS. Returns the estimator that flew it (its map) and its map's truth."""
+    sim, pipeline = su.sim, su.pipeline
+    traj = fly(lawnmower_waypoints(sim.mapping, alt_m), sim.mapping.speed_m_s, sim.vehicle, su.rng_fly_map, sim.dt_s)
+    est = Estimator(pipeline, su.options, frame=su.world.frame)
+    truth = _MapTruth()
     faults = FaultInjector(FaultPlan(list(sim.faults)), "mapping") if sim.faults else None
     _fly(est, su, traj, su.sensors(traj, imu_bias(sim.noise, su.rng_imu)), fps, latency_s=sim.denial.fix_latency_s,
-         on_frame=on_frame, faults=faults if faults is not None and faults.faults else None, notes=su.survey_notes, progress=progress)
-    # A landmark's truth is the median of the true points behind the features that fed it. Scored: the
-    # landmarks positioning uses (seen more than 10 times, views consistent), and all seen more than 10 times.
-    lm = est.landmarks
-    m = pipeline.mapping
-    seen = np.flatnonzero(lm.n_seen[: len(lm)] >= m.min_seen)
-    used = seen[lm.usable(seen, m.min_seen, m.max_mean_chi2, m.min_found_ratio)]
+         on_frame=truth.on_frame, faults=faults if faults is not None and faults.faults else None, notes=su.survey_notes,
+         progress=progress)
+    return est, truth
 
-    def errors(ids):
-        return np.array([lm.p_ned_m[j, :2] - np.median(truths_of[int(j)], axis=0)[:2] for j in ids]).reshape(-1, 2)
 
-    return est, errors(used), errors(seen), mapping_ms
+class _Scored:
+    """What the evaluator scores of a flight once GPS1 is lost at ``denied_from_s``: each fix, each output, and why
+    frames gave none. Only this sees the truth."""
+
+    def __init__(self, su: _Setup, traj, denied_from_s: float) -> None:
+        self.su, self.traj, self.denied_from = su, traj, float(denied_from_s)
+        self.dt = traj.t_s[1] - traj.t_s[0]
+        self.fix_applied, self.fix_err, self.fix_sigma, self.fix_gated, self.pos_ms, self.n_feat = [], [], [], [], [], []
+        self.fused_t, self.fused_err, self.fused_cov, self.fused_vel_err = [], [], [], []
+        self.reasons: dict[str, int] = {}
+        self.counts = {"eligible": 0, "eligible_fixed": 0, "frames": 0}
+
+    def on_frame(self, seen: _Seen) -> None:
+        res, traj, latency_s = seen.result, self.traj, self.su.sim.denial.fix_latency_s
+        t_capture = float(traj.t_s[seen.i])
+        if res.kind == "skipped" or res.mapping or t_capture < self.denied_from:
+            return
+        self.pos_ms.append(seen.ms)
+        self.n_feat.append(len(res.features) if res.features is not None else 0)
+        eligible = _cube_fully_in_view(self.su.world, self.su.camera, seen.rendered.pose) and not seen.blinded
+        self.counts["frames"] += 1
+        self.counts["eligible"] += eligible
+        if res.kind == "visual":
+            self.counts["eligible_fixed"] += eligible
+            self.fix_err.append(res.located.p_ned_m[:2] - traj.p_ned_m[seen.i, :2])
+            self.fix_sigma.append(res.located.sigma_h_rms_m)
+            self.fix_gated.append(not res.decision.accepted)
+            self.fix_applied.append(t_capture + latency_s)
+        else:
+            key = _reason_key(res.reason)
+            self.reasons[key] = self.reasons.get(key, 0) + 1
+
+    def on_output(self, i: int, out) -> None:
+        if out.estimate is None or out.t_described_s < self.denied_from:
+            return
+        traj = self.traj
+        k = min(max(int(round(out.t_described_s / self.dt)), 0), len(traj.t_s) - 1)
+        self.fused_t.append(out.t_described_s)
+        self.fused_err.append(out.estimate.p_ned_m[:2] - traj.p_ned_m[k, :2])
+        self.fused_cov.append(out.estimate.cov_p_m2[:2, :2])
+        self.fused_vel_err.append(out.estimate.v_ned_m_s[:2] - traj.v_ned_m_s[k, :2])
+
+    def record(self, seed: int, est: Estimator, landmark_errors: tuple[np.ndarray, np.ndarray], mapping_ms: list, blackout,
+               notes) -> RunRecord:
+        """The run's record; ``landmark_errors`` from :meth:`_MapTruth.errors` of the map the flight positioned on."""
+        # A fix captured in the flight's last moments never reaches the filter.
+        t_end = float(self.traj.t_s[-1])
+        fix_applied = [t if t <= t_end + 1e-9 else np.nan for t in self.fix_applied]
+        lm_err, lm_err_seen = landmark_errors
+        return RunRecord(
+            seed=seed,
+            landmark_err_ne_m=lm_err,
+            landmark_seen_err_ne_m=lm_err_seen,
+            fix_err_ne_m=np.array(self.fix_err).reshape(-1, 2),
+            fix_sigma_h_rms_m=np.array(self.fix_sigma),
+            fix_gated=np.array(self.fix_gated, bool),
+            n_eligible_frames=self.counts["eligible"],
+            n_eligible_fixed=self.counts["eligible_fixed"],
+            n_positioning_frames=self.counts["frames"],
+            fused_t_s=np.array(self.fused_t),
+            fused_err_ne_m=np.array(self.fused_err).reshape(-1, 2),
+            fused_cov_ne_m2=np.array(self.fused_cov).reshape(-1, 2, 2),
+            fused_vel_err_ne_m_s=np.array(self.fused_vel_err).reshape(-1, 2),
+            fix_applied_t_s=np.array(fix_applied, float),
+            denied_from_s=self.denied_from,
+            denied_s=float(self.traj.duration_s - self.denied_from),
+            blackout_s=blackout,
+            n_reinit=est.filter.n_reinit if est.filter is not None else 0,
+            n_bad_imu=est.filter.n_bad_imu if est.filter is not None else 0,
+            mapping_ms=np.array(mapping_ms),
+            positioning_ms=np.array(self.pos_ms),
+            features_per_frame=np.array(self.n_feat),
+            no_fix_reasons=self.reasons,
+            notes=notes,
+        )
 
 
 def run_once(
@@ -226,82 +314,51 @@ def run_once(
     the time it describes. Only this function sees the truth, to score.
     """
     su = _Setup(world, pipeline, sim, seed)
-    map_est, lm_err, lm_err_seen, mapping_ms = _map_flight(su, alt_m, mapping_fps or fps, progress)
+    map_est, map_truth = _map_flight(su, alt_m, mapping_fps or fps, progress)
+    landmark_errors = map_truth.errors(map_est, pipeline)  # the survey's map, before the positioning flight adds to it
 
     traj = fly(lawnmower_waypoints(sim.positioning, alt_m), sim.positioning.speed_m_s, sim.vehicle, su.rng_fly_pos, sim.dt_s)
     den = sim.denial
     denied_from = float(den.gps_until_s)
     est = Estimator(pipeline, su.options, landmarks=map_est.landmarks, frame=world.frame)
-    dt = traj.t_s[1] - traj.t_s[0]
     blackout = (den.blackout_start_s, den.blackout_start_s + den.blackout_duration_s) if den.blackout_start_s is not None else None
-
-    fix_applied, fix_err, fix_sigma, fix_gated, pos_ms, n_feat = [], [], [], [], [], []
-    fused_t, fused_err, fused_cov, fused_vel_err = [], [], [], []
-    reasons: dict[str, int] = {}
-    counts = {"eligible": 0, "eligible_fixed": 0, "frames": 0}
-
-    def on_frame(seen: _Seen) -> None:
-        res = seen.result
-        t_capture = float(traj.t_s[seen.i])
-        if res.kind == "skipped" or res.mapping or t_capture < denied_from:
-            return
-        pos_ms.append(seen.ms)
-        n_feat.append(len(res.features) if res.features is not None else 0)
-        eligible = _cube_fully_in_view(world, su.camera, seen.rendered.pose) and not seen.blinded
-        counts["frames"] += 1
-        counts["eligible"] += eligible
-        if res.kind == "visual":
-            counts["eligible_fixed"] += eligible
-            fix_err.append(res.located.p_ned_m[:2] - traj.p_ned_m[seen.i, :2])
-            fix_sigma.append(res.located.sigma_h_rms_m)
-            fix_gated.append(not res.decision.accepted)
-            fix_applied.append(t_capture + den.fix_latency_s)
-        else:
-            key = _reason_key(res.reason)
-            reasons[key] = reasons.get(key, 0) + 1
-
-    def on_output(i: int, out) -> None:
-        if out.estimate is None or out.t_described_s < denied_from:
-            return
-        k = min(max(int(round(out.t_described_s / dt)), 0), len(traj.t_s) - 1)
-        fused_t.append(out.t_described_s)
-        fused_err.append(out.estimate.p_ned_m[:2] - traj.p_ned_m[k, :2])
-        fused_cov.append(out.estimate.cov_p_m2[:2, :2])
-        fused_vel_err.append(out.estimate.v_ned_m_s[:2] - traj.v_ned_m_s[k, :2])
-
+    scored = _Scored(su, traj, denied_from)
     sensors = su.sensors(traj, imu_bias(sim.noise, su.rng_imu), denied_from_s=denied_from)
     notes: list[tuple[float, str]] = []
     faults = FaultInjector(FaultPlan(list(sim.faults))) if sim.faults else None
     faults = faults if faults is not None and faults.faults else None
-    _fly(est, su, traj, sensors, fps, latency_s=den.fix_latency_s, on_frame=on_frame, on_output=on_output, blackout=blackout,
-         faults=faults, notes=notes, progress=progress)
-    # A fix captured in the flight's last moments never reaches the filter.
-    t_end = float(traj.t_s[-1])
-    fix_applied = [t if t <= t_end + 1e-9 else np.nan for t in fix_applied]
+    _fly(est, su, traj, sensors, fps, latency_s=den.fix_latency_s, on_frame=scored.on_frame, on_output=scored.on_output,
+         blackout=blackout, faults=faults, notes=notes, progress=progress)
+    return scored.record(seed, est, landmark_errors, map_truth.mapping_ms, blackout,
+                         [(t, f"survey: {line}") for t, line in su.survey_notes] + notes)
 
-    return RunRecord(
-        seed=seed,
-        landmark_err_ne_m=lm_err,
-        landmark_seen_err_ne_m=lm_err_seen,
-        fix_err_ne_m=np.array(fix_err).reshape(-1, 2),
-        fix_sigma_h_rms_m=np.array(fix_sigma),
-        fix_gated=np.array(fix_gated, bool),
-        n_eligible_frames=counts["eligible"],
-        n_eligible_fixed=counts["eligible_fixed"],
-        n_positioning_frames=counts["frames"],
-        fused_t_s=np.array(fused_t),
-        fused_err_ne_m=np.array(fused_err).reshape(-1, 2),
-        fused_cov_ne_m2=np.array(fused_cov).reshape(-1, 2, 2),
-        fused_vel_err_ne_m_s=np.array(fused_vel_err).reshape(-1, 2),
-        fix_applied_t_s=np.array(fix_applied, float),
-        denied_from_s=denied_from,
-        denied_s=float(traj.duration_s - denied_from),
-        blackout_s=blackout,
-        n_reinit=est.filter.n_reinit if est.filter is not None else 0,
-        n_bad_imu=est.filter.n_bad_imu if est.filter is not None else 0,
-        mapping_ms=np.array(mapping_ms),
-        positioning_ms=np.array(pos_ms),
-        features_per_frame=np.array(n_feat),
-        no_fix_reasons=reasons,
-        notes=[(t, f"survey: {line}") for t, line in su.survey_notes] + notes,
-    )
+
+def run_mission(
+    world: World, mission: Mission, alt_m: float, speed_m_s: float, gps_lost_at_seq: int, fps: float, seed: int,
+    pipeline: PipelineConfig, sim: SimConfig, progress=None,
+) -> RunRecord:
+    """Fly ``mission`` once over ``world`` from home at its origin, every height at ``alt_m`` and at ``speed_m_s``:
+    mapping while GPS1 is good, GPS1 lost (no fix) on reaching mission item ``gps_lost_at_seq`` (its number in the
+    file), the rest flown and scored as :func:`run_once` scores its positioning flight. One estimator, as in a real
+    flight: the map it positions on is the one it made on the way out. Faults apply at ``at_s`` after take-off."""
+    path_ned, owner = mission_waypoints_ned(mission, world.frame, alt_m)
+    item = mission.item(gps_lost_at_seq)
+    if not item.has_place or gps_lost_at_seq not in owner:
+        raise ConfigError(f"{mission.source}: item {gps_lost_at_seq} ({item.name}) is not a place the vehicle reaches")
+    su = _Setup(world, pipeline, sim, seed)
+    traj = fly(path_ned, speed_m_s, sim.vehicle, su.rng_fly_map, sim.dt_s)
+    k = int(np.flatnonzero(owner == gps_lost_at_seq)[-1])
+    denied_from = float(traj.reached_t_s[k])
+    est = Estimator(pipeline, su.options, frame=world.frame)
+    map_truth, scored = _MapTruth(), _Scored(su, traj, denied_from)
+
+    def on_frame(seen: _Seen) -> None:
+        map_truth.on_frame(seen)
+        scored.on_frame(seen)
+
+    notes: list[tuple[float, str]] = []
+    faults = FaultInjector(FaultPlan(list(sim.faults)), None) if sim.faults else None
+    _fly(est, su, traj, su.sensors(traj, imu_bias(sim.noise, su.rng_imu), denied_from_s=denied_from), fps,
+         latency_s=sim.denial.fix_latency_s, on_frame=on_frame, on_output=scored.on_output, faults=faults, notes=notes,
+         progress=progress)
+    return scored.record(seed, est, map_truth.errors(est, pipeline), map_truth.mapping_ms, None, notes)

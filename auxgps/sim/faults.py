@@ -98,8 +98,8 @@ def load_fault_plan(path) -> FaultPlan:
 class FaultInjector:
     """Applies a :class:`FaultPlan` to one flight's frames (:meth:`frame`) and telemetry (:meth:`events`)."""
 
-    def __init__(self, plan: FaultPlan, flight: str = "positioning") -> None:
-        self.faults = [f for f in plan.faults if f.flight == flight]
+    def __init__(self, plan: FaultPlan, flight: str | None = "positioning") -> None:
+        self.faults = [f for f in plan.faults if flight is None or f.flight == flight]  # None: a mission's one flight
         self._held_image: dict[int, np.ndarray] = {}  # camera_frozen: the frame the driver repeats
         self._last_passed_t: dict[int, float] = {}  # camera_slow
         self._stuck_alt: dict[int, float] = {}  # height_stuck

@@ -7,7 +7,7 @@ survey legs at a limited rate, and gusts push it about. Telemetry is the truth p
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
 import numpy as np
@@ -15,7 +15,9 @@ from pydantic import Field
 from pydantic.dataclasses import dataclass as config_dataclass
 
 from auxgps.config import _STRICT, NonNegative, Positive, parse_as, read_yaml
-from auxgps.core.geometry import R_ned_body_from_euler, euler_from_R_ned_body
+from auxgps.core.geometry import LocalFrame, R_ned_body_from_euler, euler_from_R_ned_body
+from auxgps.errors import ConfigError
+from auxgps.io.mission import AMSL_FRAMES, M, Mission
 from auxgps.sim.faults import Fault
 from auxgps.sim.render import ImageEffects
 
@@ -124,11 +126,67 @@ def lawnmower_waypoints(survey: SurveyConfig, alt_m: float) -> np.ndarray:
     return np.column_stack([ne, np.full(len(ne), -alt_m)])
 
 
+def mission_waypoints_ned(mission: Mission, frame: LocalFrame, alt_m: float | None = None,
+                          max_distance_m: float = 20_000.0) -> tuple[np.ndarray, np.ndarray]:
+    """The path a multirotor flies for ``mission`` from home at ``frame``'s origin, on the ground: (K, 3) NED
+    waypoints and (K,) the mission item each belongs to (its seq; -1 for the start and for the return this adds).
+
+    Take-off climbs where the vehicle is; a waypoint (or loiter) goes to its place at its height; land descends
+    where it is told (lat/lon 0: where the vehicle is); return-to-launch flies home at the height it has, then
+    lands. A mission that ends elsewhere is given a return and a landing (ArduPilot would hold there; a test flight
+    comes home). ``alt_m`` puts every height of the mission at that many metres above home (an evaluation flying
+    one path at several heights); otherwise the items' own heights are flown. Items without a place (DO_ and
+    CONDITION_ commands) are skipped. ConfigError when a place is over ``max_distance_m`` from home: a mission
+    of somewhere else."""
+    home_amsl_m = frame.alt_amsl_m
+    path: list[tuple[float, float, float]] = [(0.0, 0.0, 0.0)]
+    owner = [-1]
+
+    def go(ne, height_m, seq):
+        if np.hypot(*ne) > max_distance_m:
+            raise ConfigError(f"{mission.source}: item {seq} is {np.hypot(*ne) / 1000:.1f} km from the world's origin "
+                              f"(over {max_distance_m / 1000:g} km): a mission of somewhere else")
+        path.append((float(ne[0]), float(ne[1]), -float(height_m)))
+        owner.append(seq)
+
+    landed = False
+    for it in mission.items:
+        if not it.has_place:
+            continue
+        here_ne, here_h = np.array(path[-1][:2]), -path[-1][2]
+        height = alt_m if alt_m is not None else (it.alt_m - home_amsl_m if it.frame in AMSL_FRAMES else it.alt_m)
+        if it.lat_deg == 0.0 and it.lon_deg == 0.0:
+            ne = here_ne
+        else:
+            ne = frame.to_ned(lat_deg=it.lat_deg, lon_deg=it.lon_deg, alt_amsl_m=home_amsl_m)[:2]
+        if it.command == M.MAV_CMD_NAV_TAKEOFF:
+            go(here_ne, height, it.seq)
+        elif it.command == M.MAV_CMD_NAV_LAND:
+            go(ne, here_h, it.seq)
+            go(ne, 0.0, it.seq)
+            landed = True
+            break
+        elif it.command == M.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            go((0.0, 0.0), here_h, it.seq)
+            go((0.0, 0.0), 0.0, it.seq)
+            landed = True
+            break
+        else:
+            if here_h <= 0.0:  # a waypoint before any take-off: ArduPilot takes off to it; climb first
+                go(here_ne, height, it.seq)
+            go(ne, height, it.seq)
+    if not landed:
+        go((0.0, 0.0), -path[-1][2], -1)
+        go((0.0, 0.0), 0.0, -1)
+    return np.array(path), np.array(owner)
+
+
 @dataclass(frozen=True)
 class Trajectory:
     """The true motion, sampled every ``dt_s``.
 
-    t_s (T,) s; p_ned_m (T, 3) m; v_ned_m_s (T, 3); a_ned_m_s2 (T, 3); euler_rad (T, 3) roll, pitch, yaw.
+    t_s (T,) s; p_ned_m (T, 3) m; v_ned_m_s (T, 3); a_ned_m_s2 (T, 3); euler_rad (T, 3) roll, pitch, yaw;
+    reached_t_s (W,): when each waypoint flown through was reached (the first, the start, at 0).
     """
 
     t_s: np.ndarray
@@ -136,6 +194,7 @@ class Trajectory:
     v_ned_m_s: np.ndarray
     a_ned_m_s2: np.ndarray
     euler_rad: np.ndarray
+    reached_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def duration_s(self) -> float:
@@ -239,10 +298,12 @@ def fly(waypoints_ned_m: np.ndarray, speed_m_s: float, vehicle: VehicleConfig, r
     guide = WaypointGuidance(waypoints_ned_m, speed_m_s, vehicle)
     craft = Multirotor(vehicle, guide.wps[0], guide.yaw_goal_rad, dt_s)
     ts, ps, vs, accs, eulers = [], [], [], [], []
+    reached = [0.0]
     settled = 0
     t = 0.0
     while settled <= int(1.0 / dt_s):
         v_des = guide.command(craft.p_ned_m)
+        reached += [t] * (min(guide.target, len(guide.wps)) - len(reached))
         settled += guide.done
         a, euler = craft.command(v_des, guide.yaw_goal_rad, rng)
         ts.append(t)
@@ -252,7 +313,7 @@ def fly(waypoints_ned_m: np.ndarray, speed_m_s: float, vehicle: VehicleConfig, r
         eulers.append(euler)
         craft.advance(a)
         t += dt_s
-    return Trajectory(np.array(ts), np.array(ps), np.array(vs), np.array(accs), np.array(eulers))
+    return Trajectory(np.array(ts), np.array(ps), np.array(vs), np.array(accs), np.array(eulers), np.array(reached))
 
 
 @dataclass(frozen=True)
