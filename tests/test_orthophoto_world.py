@@ -304,3 +304,17 @@ def test_dsm_keys(tmp_path, rasters):
     text = _config_error(write_world(tmp_path, {"orthophoto": str(rasters["utm"]), "dsm": "missing_dsm.tif"}, name="b.yaml"))
     assert "ground.dsm" in text and "missing_dsm.tif" in text
     assert "exactly one" in _config_error(write_world(tmp_path, {"color": "grey", "orthophoto": str(rasters["utm"])}, name="c.yaml"))
+
+
+def test_the_rendering_benchmark_runs_on_a_small_raster(tmp_path, cam):
+    """`auxgps bench`'s orthophoto case, on a 60 m raster: it builds its GeoTIFFs once and reports finite
+    figures (never timed here)."""
+    from auxgps.evaluation.render_bench import RenderBenchConfig, render_bench_report, run_render_bench
+
+    cfg = RenderBenchConfig(side_m=60.0, leg_m=20.0, frame_spacing_m=5.0, relief_frames=2)
+    fig = run_render_bench(cam, tmp_path, cfg)
+    assert fig["orthophoto"]["overview_factors"] == [2.0] and fig["build_s"] > 0
+    for key in ("at_40m", "at_120m", "relief_at_60_to_90m_agl"):
+        assert fig[key]["frames"] >= 1 and np.isfinite(fig[key]["median_ms"])
+    assert run_render_bench(cam, tmp_path, cfg)["build_s"] < fig["build_s"]  # the second run finds them built
+    assert "median" in render_bench_report(fig)
