@@ -201,7 +201,7 @@ def _bench(args) -> int:
         os.execvpe(sys.executable, [sys.executable, "-m", "auxgps.cli", *args.argv], env)
     import time
 
-    from auxgps.evaluation.bench import BenchConfig, bench_report, run_bench, tiny_sim_config
+    from auxgps.evaluation.bench import BenchConfig, bench_report, machine_info, run_bench, tiny_sim_config
     from auxgps.sim.flight import load_sim_config
 
     sim = load_sim_config(args.sim_config)
@@ -219,8 +219,23 @@ def _bench(args) -> int:
         if msg and not args.quiet:
             print(f"[{time.monotonic() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-    figures = run_bench(load_pipeline_config(args.config), sim, cfg, tuple(m for m in methods if m is not None), progress)
-    print(bench_report(figures))
+    pipeline = load_pipeline_config(args.config)
+    if args.render_only:
+        import cv2
+
+        cv2.setNumThreads(1)
+        figures = {"machine": machine_info()}
+    else:
+        figures = run_bench(pipeline, sim, cfg, tuple(m for m in methods if m is not None), progress)
+        print(bench_report(figures))
+    if args.tiny or args.no_render:
+        figures["ortho_render"] = {"skipped": "--tiny" if args.tiny else "--no-render"}
+    else:
+        from auxgps.core.camera import camera_from_config
+        from auxgps.evaluation.render_bench import render_bench_report, run_render_bench
+
+        figures["ortho_render"] = run_render_bench(camera_from_config(pipeline.camera), args.render_cache, progress=progress)
+        print(render_bench_report(figures["ortho_render"]))
     _write_json(args.json, figures)
     return 0
 
@@ -529,6 +544,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reported-map", type=_positive(int), help="the map size of the headline positioning figures (default: the second size)")
     p.add_argument("--tiny", action="store_true", help="a survey of a few metres and small maps: a smoke test of seconds")
     p.add_argument("--no-baseline", action="store_true", help="do not run the thesis' method beside")
+    p.add_argument("--render-only", action="store_true", help="only the orthophoto world's rendering case (a 2 km square 5 cm GeoTIFF, built once)")
+    p.add_argument("--no-render", action="store_true", help="without the orthophoto world's rendering case")
+    p.add_argument("--render-cache", metavar="DIR", help="folder for the rendering case's GeoTIFFs (default ~/.cache/auxgps/bench; about 1 GB)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=_bench)
 

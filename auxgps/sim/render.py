@@ -1,6 +1,7 @@
 """A simulated camera: renders a :class:`~auxgps.sim.world.World` exactly as a :class:`PinholeCamera` sees it.
 
-The ground is a flat colour or a texture warped by the ground-plane homography; cube faces are filled as
+The ground is a flat colour, a texture warped by the ground-plane homography, or a georeferenced orthophoto
+reprojected into the view (:class:`~auxgps.sim.geoground.GeoGround`), flat or over a height model; cube faces are filled as
 anti-aliased polygons with per-face Lambertian shading, resolved per pixel with a depth buffer. Lens
 distortion, when the camera has any, is applied last by remapping the ideal image. The renderer also gives,
 for evaluation only, the true 3D point behind any pixel.
@@ -14,6 +15,7 @@ import cv2
 import numpy as np
 
 from auxgps.core.camera import CameraPose, PinholeCamera
+from auxgps.sim.geoground import GeoGround
 from auxgps.sim.world import World
 
 #: Unit vectors from a surface towards the two lights (NED): a sun high in the south-east, a dim sky fill.
@@ -109,7 +111,8 @@ class Renderer:
         ]
         self._vertices = world.all_vertices_ned()
         # A plain ground is the same image in every frame: made once, copied per frame.
-        self._plain_ground = None if world.ground_texture_bgr is not None else np.full((H, W, 3), world.ground_color_bgr, np.uint8)
+        self._plain_ground = None if world.ground_color_bgr is None else np.full((H, W, 3), world.ground_color_bgr, np.uint8)
+        self._geo = GeoGround(world, camera, self._xn, self._yn) if world.ground_orthophoto is not None else None
         self._distort_maps = self._make_distortion_maps() if camera.has_distortion else None
 
     def _make_distortion_maps(self) -> tuple[np.ndarray, np.ndarray]:
@@ -125,6 +128,8 @@ class Renderer:
         world = self.world
         if self._plain_ground is not None:
             return self._plain_ground.copy()
+        if self._geo is not None:
+            return self._geo.flat_image(pose)
         R_cam_ned = pose.R_ned_cam.T
         H_img_ground = self._K @ np.column_stack([R_cam_ned[:, 0], R_cam_ned[:, 1], -R_cam_ned @ pose.p_cam_in_ned_m])
         th, tw = world.ground_texture_bgr.shape[:2]
@@ -147,13 +152,18 @@ class Renderer:
         self, pose: CameraPose, effects: ImageEffects | None = None, rng: np.random.Generator | None = None
     ) -> RenderedFrame:
         """Render the view from ``pose``. ``rng`` drives the sensor noise, if any."""
-        image = self._ground(pose)
-        zbuf = np.full(image.shape[:2], np.inf, np.float32)
+        if self._geo is not None and self._geo.dsm is not None:
+            # Relief: the terrain is in the depth buffer before the cubes, so that it can hide them.
+            image, ground_depth = self._geo.relief(pose)
+            zbuf = ground_depth.copy()
+        else:
+            image, ground_depth = self._ground(pose), None
+            zbuf = np.full(image.shape[:2], np.inf, np.float32)
         c = pose.p_cam_in_ned_m
         for cube, faces in sorted(self._cubes, key=lambda cf: -np.linalg.norm(cf[0].vertices_ned().mean(0) - c)):
             front = [f for f in faces if f[1] @ (f[0].mean(axis=0) - c) < 0]  # faces turned towards the camera
             self._draw_cube(image, zbuf, pose, front)
-        depth = np.minimum(zbuf, self._ground_depth(pose))
+        depth = np.minimum(zbuf, self._ground_depth(pose) if ground_depth is None else ground_depth)
         if self._distort_maps is not None:
             mx, my = self._distort_maps
             image = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
