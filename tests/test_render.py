@@ -82,3 +82,17 @@ def test_full_frame_renders_fast_enough_to_be_useful(camera):
     t0 = time.perf_counter()
     r.render(tilted_pose())
     assert time.perf_counter() - t0 < 2.0
+
+
+def test_a_lens_on_the_ground_sees_nothing(camera, tmp_path):
+    # A mission starts and ends standing on the ground, where the ground-plane homography degenerates (the
+    # texture warp never returned): the frame is black, its depth 0, and a few centimetres up it is the ground.
+    tex = np.full((400, 400, 3), 200, np.uint8)
+    cv2.imwrite(str(tmp_path / "tex.png"), tex)
+    world = make_world([], ground={"texture": str(tmp_path / "tex.png"), "m_per_px": 0.05})
+    r = Renderer(world, camera)
+    for down_m in (0.0, -0.04, 0.3):
+        frame = r.render(CameraPose(np.array([0.0, 0.0, down_m]), R_BODY_CAM_DOWN))
+        assert frame.image_bgr.max() == 0 and frame.depth_m.max() == 0.0
+    up = r.render(CameraPose(np.array([0.0, 0.0, -0.1]), R_BODY_CAM_DOWN))
+    assert up.image_bgr.min() == 200 and np.allclose(up.depth_m, 0.1, atol=1e-5)

@@ -254,9 +254,13 @@ class Multirotor:
         return a_cmd + self._gust, np.array(euler_from_R_ned_body(R))
 
     def advance(self, a_ned_m_s2: np.ndarray) -> None:
-        """Integrate one step with the acceleration ``command`` returned (semi-implicit Euler)."""
+        """Integrate one step with the acceleration ``command`` returned (semi-implicit Euler). The ground (the
+        plane of home, down 0) stops it: a landing stands there."""
         self.v_ned_m_s = self.v_ned_m_s + a_ned_m_s2 * self.dt_s
         self.p_ned_m = self.p_ned_m + self.v_ned_m_s * self.dt_s
+        if self.p_ned_m[2] > 0.0:
+            self.p_ned_m[2] = 0.0
+            self.v_ned_m_s[2] = 0.0
 
 
 class WaypointGuidance:

@@ -151,7 +151,13 @@ class Renderer:
     def render(
         self, pose: CameraPose, effects: ImageEffects | None = None, rng: np.random.Generator | None = None
     ) -> RenderedFrame:
-        """Render the view from ``pose``. ``rng`` drives the sensor noise, if any."""
+        """Render the view from ``pose``. ``rng`` drives the sensor noise, if any. A lens within
+        :data:`MIN_LENS_HEIGHT_M` of the ground (a vehicle standing on it) sees nothing: a black frame, depth 0."""
+        c = pose.p_cam_in_ned_m
+        if c[2] > float(self.world.ground_down_m(c[:2])) - self.MIN_LENS_HEIGHT_M:
+            H, W = self.camera.height_px, self.camera.width_px
+            return RenderedFrame(np.zeros((H, W, 3), np.uint8), pose, np.zeros((H, W), np.float32), self.camera,
+                                 np.zeros((0, 3)), np.zeros((0, 2)))
         if self._geo is not None and self._geo.dsm is not None:
             # Relief: the terrain is in the depth buffer before the cubes, so that it can hide them.
             image, ground_depth = self._geo.relief(pose)
@@ -175,6 +181,8 @@ class Renderer:
 
     #: Supersampling factor for the anti-aliased cube edges.
     _SS = 4
+    #: Below this height above the ground the lens sees nothing (the ground-plane homography degenerates there).
+    MIN_LENS_HEIGHT_M = 0.05
 
     def _draw_cube(self, image, zbuf, pose, faces) -> None:
         """Composite one convex cube: supersampled coverage and colour, per-pixel depth test against ``zbuf``."""
