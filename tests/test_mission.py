@@ -133,3 +133,21 @@ def test_eval_refuses_a_mission_without_the_item_gps1_is_lost_at(tmp_path):
         done = subprocess.run([sys.executable, "-m", "auxgps.cli", "eval", "--world", "cubes4_0.5m_different", "--altitude", "15",
                                "--mission", str(MISSION), *extra], cwd=REPO, capture_output=True, text=True, timeout=120)
         assert done.returncode != 0 and says in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+def test_the_sitl_tool_uploads_items_as_the_file_numbers_them_at_the_height_asked():
+    sys.path.insert(0, str(REPO / "tools"))
+    try:
+        import sitl_flight
+    finally:
+        sys.path.remove(str(REPO / "tools"))
+    M = sitl_flight.M
+    m = load_mission(MISSION)
+    items = sitl_flight.mission_items(m, (47.397742, 8.545594, 488.0), 40.0)
+    assert [i.seq for i in items] == list(range(7)) and items[0].command == M.MAV_CMD_NAV_WAYPOINT  # 0: home
+    assert [i.command for i in items[1:]] == [it.command for it in m.items]
+    assert all(i.z == 40.0 and i.frame == M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT for i in items[1:-1])
+    assert items[-1].command == M.MAV_CMD_NAV_RETURN_TO_LAUNCH and items[-1].z == 0.0
+    assert (items[2].x, items[2].y) == (473977150, 85454610)
+    own = sitl_flight.mission_items(m, (47.397742, 8.545594, 488.0), None)
+    assert [i.z for i in own[1:-1]] == [15.0] * 5

@@ -16,7 +16,10 @@ priority for the whole flight (a companion computer's other work); ``--run-args=
 215 ms, never two in a row over 245 ms) and the autopilot's failsafe and EKF STATUSTEXTs. ``--faults FILE`` takes
 the fault file of `auxgps eval --faults` and applies its GPS1 faults through SITL's own parameters, ``at_s`` after
 take-off: a drag by SIM_GPS1_GLTCH_X/Y (set five times a second), an inflated accuracy by SIM_GPS1_ACC (the
-reported accuracy only), dropouts by SIM_GPS1_ENABLE.
+reported accuracy only), dropouts by SIM_GPS1_ENABLE. ``--mission FILE --gps-lost-at-waypoint N [--alt-m A]
+[--speed-m-s V]`` flies a mission file (as `auxgps eval --mission` reads it) in AUTO instead: uploaded by the
+MAVLink mission protocol, taken off in GUIDED, GPS1 disabled when the autopilot reports item N reached, and the
+mission's own landing (or an RTL where it ends without one) flown on auxgps.
 """
 
 from __future__ import annotations
@@ -62,6 +65,7 @@ class GroundStation:
         self.takeoff_mono: float | None = None
         self._fault_params: dict[str, float] = {}
         self._fault_tick_mono = 0.0
+        self.reached: set[int] = set()  # mission items the autopilot said it reached (MISSION_ITEM_REACHED)
 
     def apply_faults(self):
         """Set SITL's GPS1 parameters for the faults under way (five times a second at most; only changes sent)."""
@@ -98,6 +102,8 @@ class GroundStation:
             if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() != M.MAV_COMP_ID_AUTOPILOT1:
                 continue  # auxgps's own heartbeat, forwarded by the autopilot
             self.last[msg.get_type()] = msg
+            if msg.get_type() == "MISSION_ITEM_REACHED":
+                self.reached.add(int(msg.seq))
             if msg.get_type() == "SIM_STATE":
                 self.track.append((time.monotonic(), *self.ne(msg.lat_int / 1e7, msg.lon_int / 1e7)))
                 self.apply_faults()
@@ -242,6 +248,105 @@ def fly(gs: GroundStation) -> dict:
     }
 
 
+def mission_items(mission, home, alt_m: float | None) -> list:
+    """MISSION_ITEM_INT messages for ``mission``, item 0 home, every other item as its file numbers it; with
+    ``alt_m``, every place the vehicle flies to at that height above home (land and return keep theirs)."""
+    items = [M.MAVLink_mission_item_int_message(1, 1, 0, M.MAV_FRAME_GLOBAL, M.MAV_CMD_NAV_WAYPOINT, 0, 1, 0, 0, 0, 0,
+                                                int(home[0] * 1e7), int(home[1] * 1e7), home[2], M.MAV_MISSION_TYPE_MISSION)]
+    for it in mission.items:
+        frame, z = it.frame, it.alt_m
+        if alt_m is not None and it.has_place and it.command not in (M.MAV_CMD_NAV_LAND, M.MAV_CMD_NAV_RETURN_TO_LAUNCH):
+            frame, z = M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, alt_m
+        frame = {M.MAV_FRAME_GLOBAL: M.MAV_FRAME_GLOBAL_INT, M.MAV_FRAME_GLOBAL_RELATIVE_ALT: M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                 M.MAV_FRAME_GLOBAL_TERRAIN_ALT: M.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT}.get(frame, frame)
+        params = [0.0 if not math.isfinite(v) else v for v in it.params]
+        items.append(M.MAVLink_mission_item_int_message(1, 1, len(items), frame, it.command, 0, 1, *params,
+                                                        int(round(it.lat_deg * 1e7)), int(round(it.lon_deg * 1e7)), z,
+                                                        M.MAV_MISSION_TYPE_MISSION))
+    return items
+
+
+def upload_mission(gs: GroundStation, items: list, timeout_s: float = 60.0) -> None:
+    """The MAVLink mission protocol: MISSION_COUNT, then each item the autopilot asks for, until its ACK. Just
+    after boot ArduPilot answers NO_SPACE (its mission storage is not up yet): asked again every 2 s."""
+    t_end = time.time() + timeout_s
+    refused = None
+    while time.time() < t_end:
+        gs.c.mav.mission_count_send(1, 1, len(items), M.MAV_MISSION_TYPE_MISSION)
+        t_try = time.time() + 10.0
+        while time.time() < min(t_try, t_end):
+            msg = gs.c.recv_match(type=["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"], blocking=True, timeout=1.0)
+            if msg is None:
+                continue
+            if msg.get_type() != "MISSION_ACK":
+                gs.c.mav.send(items[msg.seq])
+                continue
+            if msg.type == M.MAV_MISSION_ACCEPTED:
+                return
+            refused = M.enums["MAV_MISSION_RESULT"][msg.type].name
+            break
+        gs.pump(2.0)
+    raise RuntimeError(f"SITL did not take the mission within {timeout_s:g} s (last answer: {refused})")
+
+
+def fly_mission(gs: GroundStation, mission, alt_m: float | None, speed_m_s: float, lost_at_seq: int) -> dict:
+    """Arm in GUIDED, take off, fly ``mission`` in AUTO; GPS1 off on reaching item ``lost_at_seq``; the mission's
+    own landing (or RTL once it ends) on auxgps. The figures of :func:`fly`."""
+    items = mission_items(mission, gs.home, alt_m)
+    if not 0 < lost_at_seq < len(items):
+        raise SystemExit(f"--gps-lost-at-waypoint {lost_at_seq}: the mission has items 1 to {len(items) - 1}")
+    upload_mission(gs, items)
+    takeoff_m = alt_m if alt_m is not None else next((it.alt_m for it in mission.items if it.command == M.MAV_CMD_NAV_TAKEOFF), 15.0)
+    t0 = time.time()
+    while not gs.armed():
+        if time.time() - t0 > 180:
+            raise RuntimeError("SITL would not arm within 180 s")
+        gs.c.set_mode("GUIDED")
+        gs.c.mav.command_long_send(1, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        gs.pump(3)
+    gs.c.mav.command_long_send(1, 1, M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, takeoff_m)
+    gs.takeoff_mono = time.monotonic()
+    gs.c.mav.param_set_send(1, 1, b"WPNAV_SPEED", speed_m_s * 100, M.MAV_PARAM_TYPE_REAL32)
+    t_up = time.time()
+    while time.time() - t_up < 60:
+        gs.pump(0.5)
+        g = gs.last.get("GLOBAL_POSITION_INT")
+        if g is not None and g.relative_alt / 1000.0 >= 0.95 * takeoff_m:
+            break
+    gs.c.mav.mission_set_current_send(1, 1, 1)
+    gs.c.set_mode("AUTO")
+    places = [(0.0, 0.0)] + [gs.ne(it.lat_deg, it.lon_deg) for it in mission.items if it.has_place and (it.lat_deg or it.lon_deg)]
+    path_m = sum(math.dist(a, b) for a, b in zip(places, places[1:] + [(0.0, 0.0)]))
+    t_end = time.time() + path_m / speed_m_s * 1.5 + 240.0
+    failed_at, errors, gps2_fixes = None, [], set()
+    while time.time() < t_end:
+        gs.pump(0.5)
+        tr, es = gs.truth(), gs.estimate()
+        if failed_at is None and (lost_at_seq in gs.reached or any(s > lost_at_seq for s in gs.reached)):
+            gs.c.mav.param_set_send(1, 1, b"SIM_GPS1_ENABLE", 0, M.MAV_PARAM_TYPE_REAL32)
+            failed_at = time.time()
+            gs.failed_at_mono = time.monotonic()
+        if failed_at and tr and es:
+            errors.append(math.dist(tr, es))
+            g2 = gs.last.get("GPS2_RAW")
+            gps2_fixes.add(g2.fix_type if g2 else None)
+        if failed_at and not gs.armed():
+            break
+        hb = gs.last.get("HEARTBEAT")
+        if hb is not None and gs.armed() and mavutil.mode_string_v10(hb) not in ("AUTO", "RTL", "LAND"):
+            gs.c.set_mode("RTL")  # the mission ended without a landing: ArduPilot holds; bring it home
+    return {
+        "landed": not gs.armed(),
+        "landing_error_m": round(math.hypot(*gs.truth()), 3),
+        "denied_s": round(time.time() - failed_at, 1) if failed_at else None,
+        "error_after_failure_m": {"rms": round(math.sqrt(sum(x * x for x in errors) / len(errors)), 3) if errors else None,
+                                  "max": round(max(errors), 3) if errors else None},
+        "gps2_fix_types_seen": sorted(x for x in gps2_fixes if x is not None),
+        "mission_items_reached": sorted(gs.reached),
+        "path_m": round(path_m, 1),
+    }
+
+
 class PtyPair:
     """Two pseudo-terminals joined back to back (what ``socat pty,raw pty,raw`` makes): SITL opens one end as its
     SERIAL1 UART, auxgps the other, and the bytes cross as on a flight controller's serial port."""
@@ -284,7 +389,13 @@ def main(argv=None) -> int:
     ap.add_argument("--busy", type=int, default=0, help="processes spinning at normal priority for the whole flight")
     ap.add_argument("--run-args", default="", help="more options for auxgps run, as one string")
     ap.add_argument("--faults", help="fault file (auxgps eval --faults): its GPS1 faults, at_s after take-off")
+    ap.add_argument("--mission", help="fly this mission file (.waypoints or .plan) in AUTO instead of the survey")
+    ap.add_argument("--alt-m", type=float, help="with --mission: every height at this many metres above home")
+    ap.add_argument("--speed-m-s", type=float, default=5.0, help="with --mission: WPNAV_SPEED, m/s (default 5)")
+    ap.add_argument("--gps-lost-at-waypoint", type=int, help="with --mission: GPS1 off on reaching this item")
     args = ap.parse_args(argv)
+    if bool(args.mission) != (args.gps_lost_at_waypoint is not None):
+        ap.error("--mission and --gps-lost-at-waypoint go together")
     if not args.sitl or not Path(args.sitl).exists():
         print("no SITL binary: set ARDUPILOT_SITL or --sitl", file=sys.stderr)
         return 2
@@ -316,7 +427,12 @@ def main(argv=None) -> int:
                                 "--camera", f"sim:{args.world}", "--log-dir", str(out / "run"), "--duration", "1500",
                                 "--gps-delay-ms", str(GPS_DELAY_MS), "--record", str(out / "rec"), *shlex.split(args.run_args)],
                                cwd=REPO, stdout=open(out / "run.log", "w"), stderr=subprocess.STDOUT)
-        result = fly(gs)
+        if args.mission:
+            from auxgps.io.mission import load_mission
+
+            result = fly_mission(gs, load_mission(args.mission), args.alt_m, args.speed_m_s, args.gps_lost_at_waypoint)
+        else:
+            result = fly(gs)
         run.terminate()
         run.wait(timeout=20)
         write_truth(gs, out / "truth.csv")

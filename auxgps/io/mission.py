@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from pymavlink import mavutil, mavwp
+os.environ.setdefault("MAVLINK20", "1")  # as auxgps.io.link: one dialect in the process (mavwp asks the variable)
+from pymavlink import mavutil, mavwp  # noqa: E402
 
-from auxgps.errors import ConfigError
+from auxgps.errors import ConfigError  # noqa: E402
 
 M = mavutil.mavlink
 #: Frames whose altitude is above home (or the terrain, which the flat or gently rolling simulated ground equals
