@@ -93,6 +93,7 @@ def _eval(args) -> int:
         workers=args.workers,
         progress=not args.quiet,
         mission=MissionRun(args.mission, args.speed_m_s, args.gps_lost_at_waypoint) if args.mission else None,
+        ray=args.ray,
     )
     print(summary_table(summary))
     for t_s, line in summary["notes"][:40]:
@@ -480,6 +481,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--sim-config", help="simulation config YAML (default: built-in defaults)")
         p.add_argument("--json", help="write the figures as JSON to this file")
         p.add_argument("--workers", type=_positive(int), help="parallel processes (default: one per core)")
+        p.add_argument("--ray", metavar="ADDRESS", help="run the runs on a Ray cluster instead ('auto', 'local' to start one "
+                                                       "here, or host:port; pip install 'auxgps[cluster]')")
         p.add_argument("--quiet", action="store_true", help="no progress bar")
 
     p = sub.add_parser("eval", help="fly a mapping survey then a positioning flight over a simulated world; score them")

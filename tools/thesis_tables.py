@@ -55,6 +55,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sim-config")
     ap.add_argument("--reuse", action="store_true",
                     help="take a scenario's figures from --json-dir when a file there was flown with the same rate, seeds and configs")
+    ap.add_argument("--ray", metavar="ADDRESS", help="fly every scenario's runs at once on a Ray cluster ('auto', 'local', "
+                                                   "host:port; pip install 'auxgps[cluster]'); local processes otherwise")
     args = ap.parse_args(argv)
     pipeline, sim = load_pipeline_config(args.config), load_sim_config(args.sim_config)
     json_dir = Path(args.json_dir)
@@ -69,9 +71,18 @@ def main(argv=None) -> int:
             if saved is not None and _same_flights(saved["scenario"], args, pipeline, sim):
                 cache[key] = saved
             else:
-                cache[key] = evaluate(WORLDS / f"{world}.yaml", float(alt), fps=args.fps, runs=args.runs, seed=args.seed, pipeline=pipeline, sim=sim)
+                cache[key] = evaluate(WORLDS / f"{world}.yaml", float(alt), fps=args.fps, runs=args.runs, seed=args.seed,
+                                      pipeline=pipeline, sim=sim, ray=args.ray, progress=args.ray is None)
                 path.write_text(json.dumps(cache[key], indent=2))
         return cache[key]
+
+    if args.ray is not None:
+        # Every scenario at once, so that the cluster has all their runs in hand (each evaluate waits on its own).
+        from concurrent.futures import ThreadPoolExecutor
+
+        scenarios = sorted({(world, alt) for _, _, alt, cells in THESIS.values() for world in cells})
+        with ThreadPoolExecutor(len(scenarios)) as threads:
+            list(threads.map(lambda wa: summary(*wa), scenarios))
 
     lines = [
         "# The thesis' Tables 5.1 to 5.12, and ours",

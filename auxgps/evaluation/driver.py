@@ -1,8 +1,16 @@
-"""Runs seeded evaluation runs of a scenario, in parallel processes, with a progress bar."""
+"""Runs seeded evaluation runs of a scenario, in parallel processes or on a Ray cluster, with a progress bar.
+
+Each run is independent and seeded (:func:`run_job`), so where it runs changes nothing in its result: the local
+process pool and Ray give the same records for the same seeds. On Ray (``ray=ADDRESS``, the optional extra
+``auxgps[cluster]``) the runs go to the cluster's workers: auxgps must be installed there, and the world, mission
+and config paths must be readable from them (a shared folder), as they are read where each run flies.
+"""
 
 from __future__ import annotations
 
 import os
+import socket
+import threading
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -40,6 +48,47 @@ def run_job(args) -> RunRecord:
     return run_once(load_world(world_path), alt_m, fps, seed, pipeline, sim, mapping_fps=mapping_fps)
 
 
+#: Held while joining Ray: several evaluations may start at once, from threads (tools/thesis_tables.py --ray).
+_RAY_INIT = threading.Lock()
+
+
+def _join_ray(ray, address: str) -> None:
+    with _RAY_INIT:
+        if ray.is_initialized():
+            return
+        host, _, port = address.removeprefix("ray://").rpartition(":")
+        if host and port.isdigit():
+            # Ray retries an address nobody answers at for minutes: say so at once instead.
+            try:
+                socket.create_connection((host, int(port)), timeout=5.0).close()
+            except OSError as err:
+                raise ConfigError(f"--ray {address}: nothing answers there ({err.strerror or err})") from None
+        try:
+            ray.init(address=None if address == "local" else address, include_dashboard=False, log_to_driver=False,
+                     configure_logging=False)
+        except (ConnectionError, RuntimeError, ValueError) as err:
+            raise ConfigError(f"--ray {address}: cannot join the cluster: {err}".replace("\n", " ")) from None
+
+
+def _run_on_ray(jobs: list, address: str, desc: str, progress: bool) -> list[RunRecord]:
+    """The jobs as Ray tasks (one CPU each), their records in job order."""
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError("--ray needs Ray: pip install 'auxgps[cluster]'") from None
+    _join_ray(ray, address)
+    task = ray.remote(num_cpus=1)(run_job)
+    pending = {task.remote(j): k for k, j in enumerate(jobs)}
+    records: list[RunRecord | None] = [None] * len(jobs)
+    with tqdm(total=len(jobs), desc=desc, unit="run", disable=not progress) as bar:
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            for ref in done:
+                records[pending.pop(ref)] = ray.get(ref)
+                bar.update()
+    return records
+
+
 def evaluate(
     world_path: Path | str,
     alt_m: float,
@@ -53,11 +102,13 @@ def evaluate(
     progress: bool = True,
     mapping_fps: float | None = None,
     mission: MissionRun | None = None,
+    ray: str | None = None,
 ) -> dict:
     """Fly ``runs`` seeded runs (seeds ``seed`` .. ``seed + runs - 1``) and return the pooled summary.
 
     ``fps``: the positioning flight's frame rate; ``mapping_fps``: the survey's (default ``fps``); ``mission``: fly
-    it instead (one flight, mapping until GPS1 is lost, at ``fps`` throughout)."""
+    it instead (one flight, mapping until GPS1 is lost, at ``fps`` throughout); ``ray``: a Ray cluster's address
+    ("auto" for the one this machine belongs to, "local" to start one here) to run on instead of local processes."""
     world = load_world(world_path)  # fail early, in this process, on a bad world or mission file
     if mission is not None:
         loaded = load_mission(mission.path)
@@ -69,7 +120,9 @@ def evaluate(
     jobs = [(str(world_path), alt_m, fps, seed + k, pipeline, sim, mapping_fps, mission) for k in range(runs)]
     workers = max(1, min(workers or os.cpu_count() or 1, runs))
     desc = f"{Path(world_path).stem} @ {alt_m:g} m"
-    if workers == 1:
+    if ray is not None:
+        records = _run_on_ray(jobs, ray, desc, progress)
+    elif workers == 1:
         records = [run_job(j) for j in tqdm(jobs, desc=desc, unit="run", disable=not progress)]
     else:
         with ProcessPoolExecutor(workers) as pool:
