@@ -353,6 +353,20 @@ def glare_light(shape_hw: tuple[int, int], glint_px: np.ndarray, strength: float
     return (np.float32(255.0 * strength) * np.exp(-0.5 * (beyond / np.float32(sigma)) ** 2)).astype(np.float32)
 
 
+def _add_glare(out: np.ndarray, glint_px: np.ndarray, effects: ImageEffects) -> None:
+    """Add the glare to ``out`` (H, W, 3) float32 in place, over the box outside which it is under 0.1 grey level."""
+    H, W = out.shape[:2]
+    peak = 255.0 * effects.glare_strength
+    reach = effects.glare_core_frac * W + max(effects.glare_falloff_frac * W, 1e-3) * np.sqrt(2.0 * np.log(max(peak / 0.1, 1.0)))
+    x0, x1 = max(int(np.floor(glint_px[0] - reach)), 0), min(int(np.ceil(glint_px[0] + reach)) + 1, W)
+    y0, y1 = max(int(np.floor(glint_px[1] - reach)), 0), min(int(np.ceil(glint_px[1] + reach)) + 1, H)
+    if x1 <= x0 or y1 <= y0:
+        return
+    light = glare_light((y1 - y0, x1 - x0), np.asarray(glint_px, float) - [x0, y0], effects.glare_strength,
+                        effects.glare_core_frac * W / (x1 - x0), effects.glare_falloff_frac * W / (x1 - x0))
+    out[y0:y1, x0:x1] += light[..., None]
+
+
 def apply_effects(image: np.ndarray, effects: ImageEffects, rng: np.random.Generator | None, *,
                   motion_px: np.ndarray | None = None, glint_px: np.ndarray | None = None) -> np.ndarray:
     """The camera's effects on one rendered frame, in the order light meets them: exposure gain, defocus blur,
@@ -371,8 +385,7 @@ def apply_effects(image: np.ndarray, effects: ImageEffects, rng: np.random.Gener
     if effects.glare_haze > 0:
         out = out * np.float32(1.0 - effects.glare_haze) + np.float32(255.0 * effects.glare_haze)
     if effects.glare_strength > 0 and glint_px is not None:
-        light = glare_light(out.shape[:2], glint_px, effects.glare_strength, effects.glare_core_frac, effects.glare_falloff_frac)
-        out += light[..., None]
+        _add_glare(out, glint_px, effects)
     if effects.shift_gain != 1.0:
         out *= np.float32(effects.shift_gain)
     if effects.shot_noise_dn > 0 or effects.read_noise_dn > 0:
@@ -382,7 +395,7 @@ def apply_effects(image: np.ndarray, effects: ImageEffects, rng: np.random.Gener
     if tuple(effects.shift_gain_bgr) != (1.0, 1.0, 1.0):
         out *= np.asarray(effects.shift_gain_bgr, np.float32)
     if effects.shift_gamma != 1.0:
-        out = np.float32(255.0) * (np.clip(out, 0.0, 255.0) / np.float32(255.0)) ** np.float32(effects.shift_gamma)
+        out = np.float32(255.0) * cv2.pow(np.clip(out, 0.0, 255.0) / np.float32(255.0), effects.shift_gamma)
     if effects.noise_sigma > 0:
         rng = rng if rng is not None else np.random.default_rng(0)
         out += rng.normal(0.0, effects.noise_sigma, out.shape).astype(np.float32)
