@@ -331,3 +331,10 @@ def test_the_setup_renders_with_the_way_back_only_when_told(camera):
     out = su.render(traj, 50).image_bgr.astype(float)
     back = su.render(traj, 50, after_gps_loss=True).image_bgr.astype(float)
     assert back.mean() == pytest.approx(0.5 * out.mean(), abs=atol_grey)
+
+
+@pytest.mark.parametrize("name, section", [("shift", "exposure_shift"), ("glare", "glare"), ("blur", "motion_blur"),
+                                           ("noise", "sensor_noise")])
+def test_each_single_effect_file_is_that_effect_of_effects_all_alone(name, section):
+    alone, every = load_sim_config(REPO / "config" / "sim" / f"effects_{name}.yaml"), load_sim_config(EFFECTS_ALL)
+    assert alone.effects == dataclasses.replace(SimConfig().effects, **{section: getattr(every.effects, section)})
