@@ -231,7 +231,7 @@ def _stage_table(rows: list[dict]) -> dict:
 
 def _render(renderer: Renderer, traj, i: int, R_body_cam: np.ndarray, effects, rng) -> np.ndarray:
     pose = CameraPose(traj.p_ned_m[i].copy(), traj.R_ned_body(i) @ R_body_cam)
-    return renderer.render(pose, effects, rng).image_bgr
+    return renderer.render(pose, effects, rng, v_ned_m_s=traj.v_ned_m_s[i]).image_bgr
 
 
 def _map_flight(world, pipeline, sim, cfg, methods, rng_seq, progress):
@@ -288,7 +288,7 @@ def _positioning_script(world, pipeline, sim, cfg, rng_seq, progress) -> _Positi
     m = pipeline.mount
     R_body_cam = R_body_cam_from_mount(*np.deg2rad([m.roll_deg, m.pitch_deg, m.yaw_deg]))
     renderer = Renderer(world, camera)
-    effects = sim.image_effects()
+    effects = sim.image_effects(after_gps_loss=True)
     traj = fly(lawnmower_waypoints(sim.positioning, cfg.alt_m), sim.positioning.speed_m_s, sim.vehicle, rng_fly, sim.dt_s)
     den = sim.denial
     sensors = Sensors(traj, world.frame, sim.noise, rng_tel=rng_tel, rng_imu=rng_imu, bias_body_m_s2=imu_bias(sim.noise, rng_imu),

@@ -95,12 +95,14 @@ class _Setup:
         m = pipeline.mount
         self.R_body_cam = R_body_cam_from_mount(*np.deg2rad([m.roll_deg, m.pitch_deg, m.yaw_deg]))
         self.renderer = Renderer(world, self.camera)
-        self.effects = sim.image_effects()
+        self.effects_out, self.effects_back = sim.image_effects(after_gps_loss=False), sim.image_effects(after_gps_loss=True)
         self.survey_notes: list[tuple[float, str]] = []  # what the survey's estimator said (with fault injection)
 
-    def render(self, traj, i):
+    def render(self, traj, i, after_gps_loss: bool = False):
+        """The frame at step ``i``, rendered from the truth with the camera's effects of the way out or back."""
         pose = CameraPose(traj.p_ned_m[i].copy(), traj.R_ned_body(i) @ self.R_body_cam)
-        return self.renderer.render(pose, self.effects, self.rng_img)
+        effects = self.effects_back if after_gps_loss else self.effects_out
+        return self.renderer.render(pose, effects, self.rng_img, v_ned_m_s=traj.v_ned_m_s[i])
 
     def sensors(self, traj, bias, denied_from_s: float = np.inf) -> Sensors:
         return Sensors(traj, self.world.frame, self.sim.noise, rng_tel=self.rng_tel, rng_imu=self.rng_imu, bias_body_m_s2=bias,
@@ -121,12 +123,13 @@ class _Seen:
 
 def _fly(est: Estimator, su: _Setup, traj, sensors: Sensors, fps: float, *, latency_s: float, on_frame, on_output=None,
          blackout: tuple[float, float] | None = None, faults: FaultInjector | None = None, notes: list | None = None,
-         progress=None) -> None:
+         progress=None, effects_after_s: float = np.inf) -> None:
     """Feed one trajectory to ``est`` as a companion would: telemetry as it comes, each frame begun at its capture
     and finished ``latency_s`` later (its processing time on a vehicle), GPS_INPUT asked for at the output rate.
     ``on_frame(_Seen)`` and ``on_output(i, Output)`` are the evaluator's: only they see the truth. ``faults``
     changes what the estimator is given (frames and telemetry), never the truth; ``notes`` collects the lines
-    the estimator has for the events log, with their times."""
+    the estimator has for the events log, with their times. Frames from ``effects_after_s`` on are rendered with
+    the camera's effects of the way back (sim config ``effects``: after GPS1 is lost)."""
     dt = traj.t_s[1] - traj.t_s[0]
     frame_every = max(1, int(round(1.0 / (fps * dt))))
     out_every = max(1, int(round(1.0 / (su.pipeline.fusion.output_rate_hz * dt))))
@@ -150,7 +153,7 @@ def _fly(est: Estimator, su: _Setup, traj, sensors: Sensors, fps: float, *, late
         while pending and pending[0][0] <= t + 1e-9:
             finish(pending.pop(0))
         if i % frame_every == 0:
-            rendered = su.render(traj, i)
+            rendered = su.render(traj, i, after_gps_loss=t >= effects_after_s)
             image = rendered.image_bgr
             blinded = blackout is not None and blackout[0] <= t < blackout[1]
             if blinded:
@@ -311,7 +314,8 @@ def run_once(
     world's origin, the positioning flight from the survey's map (as ``--map``). The positioning flight has GPS1
     for its first ``sim.denial.gps_until_s`` seconds (it maps on), then GPS1 reports no fix. Each frame is begun
     at its capture and finished ``fix_latency_s`` later; GPS_INPUT is asked for at the output rate and scored at
-    the time it describes. Only this function sees the truth, to score.
+    the time it describes. The whole positioning flight has the camera's effects of the way back (an appearance
+    shift relative to the survey's). Only this function sees the truth, to score.
     """
     su = _Setup(world, pipeline, sim, seed)
     map_est, map_truth = _map_flight(su, alt_m, mapping_fps or fps, progress)
@@ -328,7 +332,7 @@ def run_once(
     faults = FaultInjector(FaultPlan(list(sim.faults))) if sim.faults else None
     faults = faults if faults is not None and faults.faults else None
     _fly(est, su, traj, sensors, fps, latency_s=den.fix_latency_s, on_frame=scored.on_frame, on_output=scored.on_output,
-         blackout=blackout, faults=faults, notes=notes, progress=progress)
+         blackout=blackout, faults=faults, notes=notes, progress=progress, effects_after_s=-np.inf)
     return scored.record(seed, est, landmark_errors, map_truth.mapping_ms, blackout,
                          [(t, f"survey: {line}") for t, line in su.survey_notes] + notes)
 
@@ -340,7 +344,8 @@ def run_mission(
     """Fly ``mission`` once over ``world`` from home at its origin, every height at ``alt_m`` and at ``speed_m_s``:
     mapping while GPS1 is good, GPS1 lost (no fix) on reaching mission item ``gps_lost_at_seq`` (its number in the
     file), the rest flown and scored as :func:`run_once` scores its positioning flight. One estimator, as in a real
-    flight: the map it positions on is the one it made on the way out. Faults apply at ``at_s`` after take-off."""
+    flight: the map it positions on is the one it made on the way out. Faults apply at ``at_s`` after take-off; the
+    camera's effects of the way back from the moment GPS1 is lost."""
     path_ned, owner = mission_waypoints_ned(mission, world.frame, alt_m)
     item = mission.item(gps_lost_at_seq)
     if not item.has_place or gps_lost_at_seq not in owner:
@@ -360,5 +365,5 @@ def run_mission(
     faults = FaultInjector(FaultPlan(list(sim.faults)), None) if sim.faults else None
     _fly(est, su, traj, su.sensors(traj, imu_bias(sim.noise, su.rng_imu), denied_from_s=denied_from), fps,
          latency_s=sim.denial.fix_latency_s, on_frame=on_frame, on_output=scored.on_output, faults=faults, notes=notes,
-         progress=progress)
+         progress=progress, effects_after_s=denied_from)
     return scored.record(seed, est, map_truth.errors(est, pipeline), map_truth.mapping_ms, None, notes)

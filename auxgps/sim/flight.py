@@ -19,7 +19,7 @@ from auxgps.core.geometry import LocalFrame, R_ned_body_from_euler, euler_from_R
 from auxgps.errors import ConfigError
 from auxgps.io.mission import AMSL_FRAMES, M, Mission
 from auxgps.sim.faults import Fault
-from auxgps.sim.render import ImageEffects
+from auxgps.sim.render import SUN_AZIMUTH_DEG, SUN_ELEVATION_DEG, ImageEffects, sun_dir_ned
 
 GRAVITY_M_S2 = 9.80665
 
@@ -70,10 +70,68 @@ class TelemetryNoiseConfig:
 
 
 @config_dataclass(config=_STRICT, frozen=True)
+class ExposureShiftConfig:
+    """How far the camera's auto-exposure and white balance have moved once GPS1 is lost, relative to the way out
+    (the map): a gain, a gain per channel (B, G, R), and a gamma on the 0..1 image (over 1 darkens mid-tones)."""
+
+    gain: Positive = 1.0
+    gain_bgr: tuple[Positive, Positive, Positive] = (1.0, 1.0, 1.0)
+    gamma: Positive = 1.0
+
+
+@config_dataclass(config=_STRICT, frozen=True)
+class GlareConfig:
+    """The sun's glint off the ground: a soft blob where a flat ground mirrors the sun into the camera, fixed
+    relative to the sun's direction (it turns in the image as the vehicle turns). ``strength`` is its peak as a
+    share of full scale (0: none; 1 saturates its core), ``core_radius_frac`` the core's radius and ``falloff_frac``
+    the one sigma of its soft edge, shares of the image width; ``haze`` a veil over the whole frame (the share of
+    full scale every pixel is blended towards). The sun stands at ``sun_azimuth_deg`` (from north towards east) and
+    ``sun_elevation_deg``. With ``after_gps_loss`` only the frames after GPS1 is lost have it (the map has not)."""
+
+    strength: NonNegative = 0.0
+    core_radius_frac: Annotated[float, Field(ge=0, le=1)] = 0.05
+    falloff_frac: Annotated[float, Field(gt=0, le=1)] = 0.08
+    haze: Annotated[float, Field(ge=0, lt=1)] = 0.0
+    sun_azimuth_deg: Annotated[float, Field(ge=-360, le=360)] = SUN_AZIMUTH_DEG
+    sun_elevation_deg: Annotated[float, Field(gt=0, le=90)] = SUN_ELEVATION_DEG
+    after_gps_loss: bool = True
+
+
+@config_dataclass(config=_STRICT, frozen=True)
+class MotionBlurConfig:
+    """The ground's motion in the image while the shutter is open, from the true velocity: a line of
+    ground speed x ``exposure_time_s`` / ground sample distance px (0 s: none; 2 ms is a daylight shutter). On the
+    whole flight unless ``after_gps_loss``."""
+
+    exposure_time_s: Annotated[float, Field(ge=0, le=0.1)] = 0.0
+    after_gps_loss: bool = False
+
+
+@config_dataclass(config=_STRICT, frozen=True)
+class SensorNoiseConfig:
+    """Shot noise (variance ``shot_dn`` grey levels squared per grey level of signal) and read noise (one sigma
+    ``read_sigma_dn`` grey levels). On the whole flight unless ``after_gps_loss``."""
+
+    shot_dn: NonNegative = 0.0
+    read_sigma_dn: NonNegative = 0.0
+    after_gps_loss: bool = False
+
+
+@config_dataclass(config=_STRICT, frozen=True)
 class EffectsConfig:
+    """What the simulated camera does to its frames (auxgps.sim.render.apply_effects). The defaults do nothing.
+
+    ``noise_sigma`` (white noise, grey levels), ``blur_sigma_px`` (defocus) and ``exposure_gain`` are the whole
+    flight's; ``exposure_shift`` applies once GPS1 is lost (in a mission, from the item it is lost at; in the
+    survey-then-positioning eval, to the whole positioning flight); the others say when they apply."""
+
     noise_sigma: NonNegative = 0.0
     blur_sigma_px: NonNegative = 0.0
     exposure_gain: Positive = 1.0
+    exposure_shift: ExposureShiftConfig = Field(default_factory=ExposureShiftConfig)
+    glare: GlareConfig = Field(default_factory=GlareConfig)
+    motion_blur: MotionBlurConfig = Field(default_factory=MotionBlurConfig)
+    sensor_noise: SensorNoiseConfig = Field(default_factory=SensorNoiseConfig)
 
 
 @config_dataclass(config=_STRICT, frozen=True)
@@ -100,8 +158,26 @@ class SimConfig:
     # Faults injected into the positioning flight (auxgps.sim.faults; `auxgps eval --faults FILE`)
     faults: list[Fault] = Field(default_factory=list)
 
-    def image_effects(self) -> ImageEffects:
-        return ImageEffects(self.effects.noise_sigma, self.effects.blur_sigma_px, self.effects.exposure_gain)
+    def image_effects(self, after_gps_loss: bool = False) -> ImageEffects:
+        """The camera's effects on a frame before GPS1 is lost (the way out, the map) or after (the way back)."""
+        fx = self.effects
+        shift, glare, blur, noise = fx.exposure_shift, fx.glare, fx.motion_blur, fx.sensor_noise
+        glare_on = after_gps_loss or not glare.after_gps_loss
+        blur_on = after_gps_loss or not blur.after_gps_loss
+        noise_on = after_gps_loss or not noise.after_gps_loss
+        return ImageEffects(
+            noise_sigma=fx.noise_sigma, blur_sigma_px=fx.blur_sigma_px, exposure_gain=fx.exposure_gain,
+            shift_gain=shift.gain if after_gps_loss else 1.0,
+            shift_gain_bgr=tuple(shift.gain_bgr) if after_gps_loss else (1.0, 1.0, 1.0),
+            shift_gamma=shift.gamma if after_gps_loss else 1.0,
+            glare_strength=glare.strength if glare_on else 0.0,
+            glare_core_frac=glare.core_radius_frac, glare_falloff_frac=glare.falloff_frac,
+            glare_haze=glare.haze if glare_on else 0.0,
+            sun_dir_ned=tuple(float(x) for x in sun_dir_ned(glare.sun_azimuth_deg, glare.sun_elevation_deg)),
+            exposure_time_s=blur.exposure_time_s if blur_on else 0.0,
+            shot_noise_dn=noise.shot_dn if noise_on else 0.0,
+            read_noise_dn=noise.read_sigma_dn if noise_on else 0.0,
+        )
 
 
 def load_sim_config(path=None) -> SimConfig:

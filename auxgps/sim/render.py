@@ -28,13 +28,60 @@ def face_shade(normal_ned: np.ndarray) -> float:
     return float(0.30 + 0.55 * max(0.0, normal_ned @ _SUN_NED) + 0.20 * max(0.0, normal_ned @ _FILL_NED))
 
 
+#: Where the sun is, for the glare, unless a configuration says otherwise: about where the shading's sun is.
+SUN_AZIMUTH_DEG = 128.0
+SUN_ELEVATION_DEG = 55.0
+
+
+def sun_dir_ned(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """(3,) unit vector from the ground towards the sun (NED): azimuth from north towards east, elevation above
+    the horizon, degrees."""
+    az, el = np.deg2rad(azimuth_deg), np.deg2rad(elevation_deg)
+    return np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), -np.sin(el)])
+
+
 @dataclass(frozen=True)
 class ImageEffects:
-    """Sensor effects applied after rendering: Gaussian noise (sigma, grey levels), blur (sigma, px), gain."""
+    """What the simulated camera does to one frame after rendering. The defaults change nothing.
+
+    Whole-run effects: ``noise_sigma`` (white Gaussian noise, grey levels), ``blur_sigma_px`` (Gaussian defocus,
+    px), ``exposure_gain``. An appearance shift (the camera's auto-exposure and white balance having moved):
+    ``shift_gain``, ``shift_gain_bgr`` (B, G, R), ``shift_gamma``. Sun glare: a soft saturating blob where a flat
+    ground reflects the sun (``sun_dir_ned``) towards the camera, ``glare_strength`` its peak as a share of full
+    scale (1 saturates its core), ``glare_core_frac`` its core's radius and ``glare_falloff_frac`` the one sigma
+    of its soft edge (both shares of the image width), ``glare_haze`` a veil over the whole frame (the share of full
+    scale every pixel is blended towards). Motion blur: the ground's motion in the image during
+    ``exposure_time_s``. Sensor noise: shot noise of variance ``shot_noise_dn`` (grey levels squared per grey
+    level of signal) and read noise of one sigma ``read_noise_dn`` (grey levels).
+    """
 
     noise_sigma: float = 0.0
     blur_sigma_px: float = 0.0
     exposure_gain: float = 1.0
+    shift_gain: float = 1.0
+    shift_gain_bgr: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    shift_gamma: float = 1.0
+    glare_strength: float = 0.0
+    glare_core_frac: float = 0.05
+    glare_falloff_frac: float = 0.08
+    glare_haze: float = 0.0
+    sun_dir_ned: tuple[float, float, float] = tuple(float(x) for x in sun_dir_ned(SUN_AZIMUTH_DEG, SUN_ELEVATION_DEG))
+    exposure_time_s: float = 0.0
+    shot_noise_dn: float = 0.0
+    read_noise_dn: float = 0.0
+
+    @property
+    def has_shift(self) -> bool:
+        return self.shift_gain != 1.0 or tuple(self.shift_gain_bgr) != (1.0, 1.0, 1.0) or self.shift_gamma != 1.0
+
+    @property
+    def has_glare(self) -> bool:
+        return self.glare_strength > 0 or self.glare_haze > 0
+
+    @property
+    def is_identity(self) -> bool:
+        return (self.exposure_gain == 1.0 and self.blur_sigma_px <= 0 and self.noise_sigma <= 0 and not self.has_shift
+                and not self.has_glare and self.exposure_time_s <= 0 and self.shot_noise_dn <= 0 and self.read_noise_dn <= 0)
 
 
 @dataclass
@@ -149,10 +196,12 @@ class Renderer:
         return z
 
     def render(
-        self, pose: CameraPose, effects: ImageEffects | None = None, rng: np.random.Generator | None = None
+        self, pose: CameraPose, effects: ImageEffects | None = None, rng: np.random.Generator | None = None,
+        v_ned_m_s: np.ndarray | None = None,
     ) -> RenderedFrame:
-        """Render the view from ``pose``. ``rng`` drives the sensor noise, if any. A lens within
-        :data:`MIN_LENS_HEIGHT_M` of the ground (a vehicle standing on it) sees nothing: a black frame, depth 0."""
+        """Render the view from ``pose``. ``rng`` drives the sensor noise, if any; ``v_ned_m_s`` (3,), the camera's
+        true velocity, the motion blur (none without it). A lens within :data:`MIN_LENS_HEIGHT_M` of the ground (a
+        vehicle standing on it) sees nothing: a black frame, depth 0."""
         c = pose.p_cam_in_ned_m
         if c[2] > float(self.world.ground_down_m(c[:2])) - self.MIN_LENS_HEIGHT_M:
             H, W = self.camera.height_px, self.camera.width_px
@@ -174,8 +223,13 @@ class Renderer:
             mx, my = self._distort_maps
             image = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             depth = cv2.remap(depth, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
-        if effects is not None:
-            image = apply_effects(image, effects, rng)
+        if effects is not None and not effects.is_identity:
+            blur_px = None
+            if effects.exposure_time_s > 0 and v_ned_m_s is not None:
+                height_m = float(self.world.ground_down_m(c[:2])) - float(c[2])
+                blur_px = ground_motion_px(self.camera, pose, v_ned_m_s, height_m, effects.exposure_time_s)
+            glint_px = sun_glint_px(self.camera, pose, np.asarray(effects.sun_dir_ned)) if effects.glare_strength > 0 else None
+            image = apply_effects(image, effects, rng, motion_px=blur_px, glint_px=glint_px)
         vis_ned, vis_px = self._visible_vertices(pose, depth)
         return RenderedFrame(image, pose, depth, self.camera, vis_ned, vis_px)
 
@@ -248,15 +302,100 @@ class Renderer:
         return self._vertices[keep], uv[keep]
 
 
-def apply_effects(image: np.ndarray, effects: ImageEffects, rng: np.random.Generator | None) -> np.ndarray:
-    """Exposure gain, then blur, then Gaussian noise (seeded by ``rng``). No effect: ``image`` itself."""
-    if effects.exposure_gain == 1.0 and effects.blur_sigma_px <= 0 and effects.noise_sigma <= 0:
+def ground_motion_px(camera: PinholeCamera, pose: CameraPose, v_ned_m_s: np.ndarray, height_m: float,
+                     exposure_s: float) -> np.ndarray:
+    """(2,) px (x right, y down): how far the ground below moves in the image during one exposure.
+
+    Its length is the ground speed across the optical axis times ``exposure_s`` over the ground sample distance
+    (``height_m`` / focal length px); its direction, the camera's motion projected into the image, reversed (the
+    ground moves the other way). Rotation during the exposure and the radial blur of a climb or descent are left out.
+    """
+    v_cam = pose.R_ned_cam.T @ np.asarray(v_ned_m_s, float)
+    gsd_m = max(float(height_m), 1e-3) / camera.focal_px
+    return -v_cam[:2] * exposure_s / gsd_m
+
+
+def sun_glint_px(camera: PinholeCamera, pose: CameraPose, sun_dir_ned: np.ndarray) -> np.ndarray | None:
+    """(2,) px: where a flat ground mirrors the sun (unit vector towards it, NED) into the camera; None when that
+    direction is behind the camera. Fixed relative to the sun's direction, it turns in the image as the vehicle
+    turns, and travels over the ground with it."""
+    d_ned = np.asarray(sun_dir_ned, float) * np.array([1.0, 1.0, -1.0])  # the mirror of the sun in the ground plane
+    uv, in_front = camera.project_cam((pose.R_ned_cam.T @ d_ned)[None, :])
+    return uv[0] if in_front[0] else None
+
+
+def line_kernel(motion_px: np.ndarray) -> np.ndarray:
+    """(K, K) float32, sum 1: a straight segment of length ``|motion_px|`` px along ``motion_px``, centred,
+    anti-aliased (sampled every 1/8 px and spread bilinearly)."""
+    d = np.asarray(motion_px, float)
+    length = float(np.hypot(*d))
+    half = int(np.ceil(length / 2.0)) + 1
+    k = np.zeros((2 * half + 1, 2 * half + 1), np.float64)
+    n = max(2, int(np.ceil(length * 8)) + 1)
+    pts = half + np.linspace(-0.5, 0.5, n)[:, None] * d[None, :]
+    x0, y0 = np.floor(pts[:, 0]).astype(int), np.floor(pts[:, 1]).astype(int)
+    fx, fy = pts[:, 0] - x0, pts[:, 1] - y0
+    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        np.add.at(k, (y0 + dy, x0 + dx), w)
+    return (k / k.sum()).astype(np.float32)
+
+
+def glare_light(shape_hw: tuple[int, int], glint_px: np.ndarray, strength: float, core_frac: float,
+                falloff_frac: float) -> np.ndarray:
+    """(H, W) float32 grey levels: the sun's glare about ``glint_px``: ``strength`` x 255 inside a core of
+    radius ``core_frac`` x width, falling off as a Gaussian of one sigma ``falloff_frac`` x width beyond it."""
+    H, W = shape_hw
+    u = np.arange(W, dtype=np.float32) - np.float32(glint_px[0])
+    v = np.arange(H, dtype=np.float32) - np.float32(glint_px[1])
+    r = np.sqrt(u[None, :] ** 2 + v[:, None] ** 2)
+    beyond = np.maximum(r - np.float32(core_frac * W), 0.0)
+    sigma = max(falloff_frac * W, 1e-3)
+    return (np.float32(255.0 * strength) * np.exp(-0.5 * (beyond / np.float32(sigma)) ** 2)).astype(np.float32)
+
+
+def _add_glare(out: np.ndarray, glint_px: np.ndarray, effects: ImageEffects) -> None:
+    """Add the glare to ``out`` (H, W, 3) float32 in place, over the box outside which it is under 0.1 grey level."""
+    H, W = out.shape[:2]
+    peak = 255.0 * effects.glare_strength
+    reach = effects.glare_core_frac * W + max(effects.glare_falloff_frac * W, 1e-3) * np.sqrt(2.0 * np.log(max(peak / 0.1, 1.0)))
+    x0, x1 = max(int(np.floor(glint_px[0] - reach)), 0), min(int(np.ceil(glint_px[0] + reach)) + 1, W)
+    y0, y1 = max(int(np.floor(glint_px[1] - reach)), 0), min(int(np.ceil(glint_px[1] + reach)) + 1, H)
+    if x1 <= x0 or y1 <= y0:
+        return
+    light = glare_light((y1 - y0, x1 - x0), np.asarray(glint_px, float) - [x0, y0], effects.glare_strength,
+                        effects.glare_core_frac * W / (x1 - x0), effects.glare_falloff_frac * W / (x1 - x0))
+    out[y0:y1, x0:x1] += light[..., None]
+
+
+def apply_effects(image: np.ndarray, effects: ImageEffects, rng: np.random.Generator | None, *,
+                  motion_px: np.ndarray | None = None, glint_px: np.ndarray | None = None) -> np.ndarray:
+    """The camera's effects on one rendered frame, in the order light meets them: exposure gain, defocus blur,
+    motion blur along ``motion_px`` (the ground's motion in the image during the exposure, px), the sun's glare
+    about ``glint_px`` and its haze, the appearance shift's exposure gain, shot and read noise, the shift's white
+    balance and gamma, then white noise. Noise is drawn from ``rng``. No effect: ``image`` itself."""
+    if effects.is_identity:
         return image
     out = image.astype(np.float32)
     if effects.exposure_gain != 1.0:
         out *= effects.exposure_gain
     if effects.blur_sigma_px > 0:
         out = cv2.GaussianBlur(out, (0, 0), effects.blur_sigma_px)
+    if motion_px is not None and np.hypot(*motion_px) > 0:
+        out = cv2.filter2D(out, -1, line_kernel(motion_px), borderType=cv2.BORDER_REFLECT_101)
+    if effects.glare_haze > 0:
+        out = out * np.float32(1.0 - effects.glare_haze) + np.float32(255.0 * effects.glare_haze)
+    if effects.glare_strength > 0 and glint_px is not None:
+        _add_glare(out, glint_px, effects)
+    if effects.shift_gain != 1.0:
+        out *= np.float32(effects.shift_gain)
+    if effects.shot_noise_dn > 0 or effects.read_noise_dn > 0:
+        rng = rng if rng is not None else np.random.default_rng(0)
+        var = np.float32(effects.shot_noise_dn) * np.clip(out, 0.0, 255.0) + np.float32(effects.read_noise_dn**2)
+        out += rng.standard_normal(out.shape, dtype=np.float32) * np.sqrt(var)
+    if tuple(effects.shift_gain_bgr) != (1.0, 1.0, 1.0):
+        out *= np.asarray(effects.shift_gain_bgr, np.float32)
+    if effects.shift_gamma != 1.0:
+        out = np.float32(255.0) * cv2.pow(np.clip(out, 0.0, 255.0) / np.float32(255.0), effects.shift_gamma)
     if effects.noise_sigma > 0:
         rng = rng if rng is not None else np.random.default_rng(0)
         out += rng.normal(0.0, effects.noise_sigma, out.shape).astype(np.float32)
