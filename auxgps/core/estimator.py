@@ -446,7 +446,8 @@ class Estimator:
             est = self.filter.estimate_at(res.t_s)
             d_ne = res.p_ned_m[:2] - est.p_ned_m[:2]
             d = float(np.linalg.norm(d_ne))
-            drag = self.supervisor.visual_check(res.t_s, d_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2])
+            drag = self.supervisor.visual_check(res.t_s, d_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2],
+                                                np.eye(2) * self.filter.fix_bias_sigma_m**2)
             if drag:
                 common["note"] = _joined(common["note"], drag, self._undo_unverified(res.t_s))
             return FrameResult(t, "self-check", f"{d:.3f} m", self_check_m=d, **common)

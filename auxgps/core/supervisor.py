@@ -197,9 +197,11 @@ class Supervisor:
         self._say(line, t_s)
         return line
 
-    def visual_check(self, t_s: float, d_ne_m: np.ndarray, cov_ne_m2: np.ndarray) -> str | None:
+    def visual_check(self, t_s: float, d_ne_m: np.ndarray, cov_ne_m2: np.ndarray, shared_ne_m2: np.ndarray | None = None) -> str | None:
         """Take a self-check while mapping: a fix located on the map minus the filter (which follows GPS1), with
-        their combined covariance. Returns a line when GPS1 is found dragged away from the map (then distrusted)."""
+        their combined covariance, and the covariance of the error visual fixes share (the map's, the attitude's:
+        it does not average out over a run of checks). Returns a line when GPS1 is found dragged away from the map
+        (then distrusted)."""
         cfg = self.cfg
         if not self.gps1_trusted:
             return None
@@ -209,7 +211,7 @@ class Supervisor:
             return None
         n = len(run)
         mean = sum(c[1] for c in run) / n
-        cov = sum(c[2] for c in run) / (n * n)
+        cov = sum(c[2] for c in run) / (n * n) + (shared_ne_m2 if shared_ne_m2 is not None else 0.0)
         m2 = float(mean @ np.linalg.solve(cov, mean))
         if float(np.linalg.norm(mean)) <= cfg.drag_m / 2:
             self.last_agreement_t_s = t_s

@@ -8,6 +8,7 @@ and config paths must be readable from them (a shared folder), as they are read 
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import socket
 import threading
@@ -125,7 +126,8 @@ def evaluate(
     elif workers == 1:
         records = [run_job(j) for j in tqdm(jobs, desc=desc, unit="run", disable=not progress)]
     else:
-        with ProcessPoolExecutor(workers) as pool:
+        # forkserver, not fork: a process that has threads (Ray's, a progress bar's) must not be forked mid-way
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("forkserver")) as pool:
             records = list(tqdm(pool.map(run_job, jobs), total=runs, desc=desc, unit="run", disable=not progress))
     summary = summarize(records)
     summary["scenario"] = {
