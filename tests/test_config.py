@@ -55,7 +55,13 @@ def test_every_shipped_world_loads_with_cubes_inside_the_survey():
     files = sorted(WORLDS.glob("*.yaml"))
     assert len(files) >= 16
     for f in files:
-        world = load_world(f)
+        try:
+            world = load_world(f)
+        except ConfigError as err:
+            # A world over data that is not in the repository (a survey's photo, an orthophoto to build first): on a
+            # clean checkout it is refused with a line naming the file it lacks.
+            assert ("no such file" in str(err) or "cannot read" in str(err)) and ("shared/data" in str(err) or "out/ortho" in str(err)), err
+            continue
         for cube in world.cubes:
             assert all(abs(v) <= 10.0 - cube.size_m / 2 for v in cube.center_ne_m), f
 
