@@ -194,7 +194,8 @@ def write_truth(gs: GroundStation, path: Path) -> None:
             w.writerow([f"{t:.4f}", f"{n:.4f}", f"{e:.4f}", int(gs.failed_at_mono is not None and t >= gs.failed_at_mono)])
 
 
-def fly(gs: GroundStation) -> dict:
+def arm_and_take_off(gs: GroundStation, height_m: float) -> None:
+    """Arm in GUIDED (asked again every 3 s, for up to 180 s) and command a take-off to ``height_m``."""
     t0 = time.time()
     while not gs.armed():
         if time.time() - t0 > 180:
@@ -202,8 +203,41 @@ def fly(gs: GroundStation) -> dict:
         gs.c.set_mode("GUIDED")
         gs.c.mav.command_long_send(1, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
         gs.pump(3)
-    gs.c.mav.command_long_send(1, 1, M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 15)
+    gs.c.mav.command_long_send(1, 1, M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, height_m)
     gs.takeoff_mono = time.monotonic()
+
+
+def fail_gps1(gs: GroundStation) -> float:
+    """Disable SITL's GPS1 now; returns the wall time it was done at (and keeps the monotonic one, to score)."""
+    gs.c.mav.param_set_send(1, 1, b"SIM_GPS1_ENABLE", 0, M.MAV_PARAM_TYPE_REAL32)
+    gs.failed_at_mono = time.monotonic()
+    return time.time()
+
+
+def sample_after_failure(gs: GroundStation, errors: list, gps2_fixes: set) -> None:
+    """The autopilot's error against the truth now, and GPS2's fix type."""
+    tr, es = gs.truth(), gs.estimate()
+    if tr and es:
+        errors.append(math.dist(tr, es))
+        g2 = gs.last.get("GPS2_RAW")
+        gps2_fixes.add(g2.fix_type if g2 else None)
+
+
+def flight_figures(gs: GroundStation, failed_at: float | None, errors: list, gps2_fixes: set) -> dict:
+    """landed, the landing's distance from home, time on auxgps, the autopilot's error after the failure, GPS2's
+    fix types."""
+    return {
+        "landed": not gs.armed(),
+        "landing_error_m": round(math.hypot(*gs.truth()), 3),
+        "denied_s": round(time.time() - failed_at, 1) if failed_at else None,
+        "error_after_failure_m": {"rms": round(math.sqrt(sum(x * x for x in errors) / len(errors)), 3) if errors else None,
+                                  "max": round(max(errors), 3) if errors else None},
+        "gps2_fix_types_seen": sorted(x for x in gps2_fixes if x is not None),
+    }
+
+
+def fly(gs: GroundStation) -> dict:
+    arm_and_take_off(gs, 15)
     gs.pump(20)
     # WPNAV_SPEED (cm/s) paces guided legs and RTL alike; DO_CHANGE_SPEED the current guided target.
     gs.c.mav.param_set_send(1, 1, b"WPNAV_SPEED", SPEED_M_S * 100, M.MAV_PARAM_TYPE_REAL32)
@@ -219,17 +253,13 @@ def fly(gs: GroundStation) -> dict:
         here = (n, e)
         while time.time() - t_leg < leg_timeout_s:
             gs.pump(0.5)
-            tr, es = gs.truth(), gs.estimate()
-            if failed_at and tr and es:
-                errors.append(math.dist(tr, es))
-                g2 = gs.last.get("GPS2_RAW")
-                gps2_fixes.add(g2.fix_type if g2 else None)
+            if failed_at:
+                sample_after_failure(gs, errors, gps2_fixes)
+            tr = gs.truth()
             if tr and math.dist(tr, (n, e)) < 0.7:
                 break
         if i == FAIL_AFTER_WAYPOINT:
-            gs.c.mav.param_set_send(1, 1, b"SIM_GPS1_ENABLE", 0, M.MAV_PARAM_TYPE_REAL32)
-            failed_at = time.time()
-            gs.failed_at_mono = time.monotonic()
+            failed_at = fail_gps1(gs)
     gs.c.set_mode("RTL")
     t_rtl = time.time()
     while time.time() - t_rtl < 180:
@@ -239,13 +269,7 @@ def fly(gs: GroundStation) -> dict:
             errors.append(math.dist(tr, es))
         if not gs.armed() and time.time() - t_rtl > 5:
             break
-    return {
-        "landed": not gs.armed(),
-        "landing_error_m": round(math.hypot(*gs.truth()), 3),
-        "denied_s": round(time.time() - failed_at, 1),
-        "error_after_failure_m": {"rms": round(math.sqrt(sum(x * x for x in errors) / len(errors)), 3), "max": round(max(errors), 3)},
-        "gps2_fix_types_seen": sorted(x for x in gps2_fixes if x is not None),
-    }
+    return flight_figures(gs, failed_at, errors, gps2_fixes)
 
 
 def mission_items(mission, home, alt_m: float | None) -> list:
@@ -297,15 +321,7 @@ def fly_mission(gs: GroundStation, mission, alt_m: float | None, speed_m_s: floa
         raise SystemExit(f"--gps-lost-at-waypoint {lost_at_seq}: the mission has items 1 to {len(items) - 1}")
     upload_mission(gs, items)
     takeoff_m = alt_m if alt_m is not None else next((it.alt_m for it in mission.items if it.command == M.MAV_CMD_NAV_TAKEOFF), 15.0)
-    t0 = time.time()
-    while not gs.armed():
-        if time.time() - t0 > 180:
-            raise RuntimeError("SITL would not arm within 180 s")
-        gs.c.set_mode("GUIDED")
-        gs.c.mav.command_long_send(1, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
-        gs.pump(3)
-    gs.c.mav.command_long_send(1, 1, M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, takeoff_m)
-    gs.takeoff_mono = time.monotonic()
+    arm_and_take_off(gs, takeoff_m)
     gs.c.mav.param_set_send(1, 1, b"WPNAV_SPEED", speed_m_s * 100, M.MAV_PARAM_TYPE_REAL32)
     t_up = time.time()
     while time.time() - t_up < 60:
@@ -321,30 +337,16 @@ def fly_mission(gs: GroundStation, mission, alt_m: float | None, speed_m_s: floa
     failed_at, errors, gps2_fixes = None, [], set()
     while time.time() < t_end:
         gs.pump(0.5)
-        tr, es = gs.truth(), gs.estimate()
         if failed_at is None and (lost_at_seq in gs.reached or any(s > lost_at_seq for s in gs.reached)):
-            gs.c.mav.param_set_send(1, 1, b"SIM_GPS1_ENABLE", 0, M.MAV_PARAM_TYPE_REAL32)
-            failed_at = time.time()
-            gs.failed_at_mono = time.monotonic()
-        if failed_at and tr and es:
-            errors.append(math.dist(tr, es))
-            g2 = gs.last.get("GPS2_RAW")
-            gps2_fixes.add(g2.fix_type if g2 else None)
+            failed_at = fail_gps1(gs)
+        if failed_at:
+            sample_after_failure(gs, errors, gps2_fixes)
         if failed_at and not gs.armed():
             break
         hb = gs.last.get("HEARTBEAT")
         if hb is not None and gs.armed() and mavutil.mode_string_v10(hb) not in ("AUTO", "RTL", "LAND"):
             gs.c.set_mode("RTL")  # the mission ended without a landing: ArduPilot holds; bring it home
-    return {
-        "landed": not gs.armed(),
-        "landing_error_m": round(math.hypot(*gs.truth()), 3),
-        "denied_s": round(time.time() - failed_at, 1) if failed_at else None,
-        "error_after_failure_m": {"rms": round(math.sqrt(sum(x * x for x in errors) / len(errors)), 3) if errors else None,
-                                  "max": round(max(errors), 3) if errors else None},
-        "gps2_fix_types_seen": sorted(x for x in gps2_fixes if x is not None),
-        "mission_items_reached": sorted(gs.reached),
-        "path_m": round(path_m, 1),
-    }
+    return {**flight_figures(gs, failed_at, errors, gps2_fixes), "mission_items_reached": sorted(gs.reached), "path_m": round(path_m, 1)}
 
 
 class PtyPair:

@@ -128,7 +128,7 @@ class NavFilter:
         self.cfg = cfg
         self._ekf = ExtendedKalmanFilter(dim_x=_N, dim_z=2)
         self._ekf.x = np.concatenate([p_ned_m, v_ned_m_s, np.zeros(5)]).reshape(_N, 1).astype(float)
-        self._ekf.P = np.diag([sigma_p_m**2] * 3 + [sigma_v_m_s**2] * 3 + [cfg.accel_bias_sigma_m_s2**2] * 3 + [self._fix_bias_sigma_m()**2] * 2)
+        self._ekf.P = np.diag([sigma_p_m**2] * 3 + [sigma_v_m_s**2] * 3 + [cfg.accel_bias_sigma_m_s2**2] * 3 + [self.fix_bias_sigma_m**2] * 2)
         self.t_s = float(t_s)
         # Every step taken, in time order, the state after each; the first is the state it started from.
         self._history: list[_Step] = [_Step(self.t_s, self.t_s, "start", (), self._ekf.x.copy(), self._ekf.P.copy())]
@@ -280,7 +280,7 @@ class NavFilter:
         Q[_I3, _I3 + 3] = Q[_I3 + 3, _I3] = q * dt**2 / 2.0
         Q[_I3 + 3, _I3 + 3] = q * dt
         Q[_I3 + 6, _I3 + 6] = cfg.accel_bias_walk_m_s2_sqrt_s**2 * dt
-        Q[9, 9] = Q[10, 10] = self._fix_bias_sigma_m()**2 * (1.0 - decay**2)
+        Q[9, 9] = Q[10, 10] = self.fix_bias_sigma_m**2 * (1.0 - decay**2)
         self._ekf.F, self._ekf.B, self._ekf.Q = F, B, Q
         self._ekf.predict(u)
         self.t_s = imu.t_s
@@ -299,7 +299,7 @@ class NavFilter:
         Q[_I3, _I3 + 3] = Q[_I3 + 3, _I3] = a2 * dt**3 / 2.0
         Q[_I3 + 3, _I3 + 3] = a2 * dt**2
         Q[_I3 + 6, _I3 + 6] = self.cfg.accel_bias_walk_m_s2_sqrt_s**2 * dt
-        Q[9, 9] = Q[10, 10] = self._fix_bias_sigma_m()**2 * (1.0 - decay**2)
+        Q[9, 9] = Q[10, 10] = self.fix_bias_sigma_m**2 * (1.0 - decay**2)
         self._ekf.x = F @ self._ekf.x
         self._ekf.P = F @ self._ekf.P @ F.T + Q
 
@@ -367,15 +367,12 @@ class NavFilter:
                 return False
         return True
 
-    def _fix_bias_sigma_m(self) -> float:
+    @property
+    def fix_bias_sigma_m(self) -> float:
         """One sigma of the error the visual fixes share, m, at the height the filter puts the vehicle at: its
         sources (attitude error, the map's geotagging) are angles, so it grows with the height above the origin's
         ground, from ``fix_bias_sigma_m`` (low flights) by ``fix_bias_per_height``."""
         return max(self.cfg.fix_bias_sigma_m, self.cfg.fix_bias_per_height * max(-float(self._ekf.x[2, 0]), 0.0))
-
-    @property
-    def fix_bias_sigma_m(self) -> float:
-        return self._fix_bias_sigma_m()
 
     def _reinitialise(self, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray) -> None:
         """Put the position on a fix, forget the shared fix error, loosen the velocity."""
@@ -386,7 +383,7 @@ class NavFilter:
             P[block, :] = 0.0
             P[:, block] = 0.0
         P[0:2, 0:2] = cov_ne_m2
-        P[9:11, 9:11] = np.eye(2) * self._fix_bias_sigma_m()**2
+        P[9:11, 9:11] = np.eye(2) * self.fix_bias_sigma_m**2
         P[3:5, 3:5] += np.eye(2) * self.cfg.reinit_speed_sigma_m_s**2
 
     def _decide(self, d: GateDecision) -> GateDecision:

@@ -23,7 +23,7 @@ from auxgps.errors import ConfigError
 from auxgps.evaluation.metrics import summarize
 from auxgps.evaluation.scenario import RunRecord, run_mission, run_once
 from auxgps.io.mission import load_mission
-from auxgps.sim.flight import SimConfig, mission_waypoints_ned
+from auxgps.sim.flight import SimConfig, gps_lost_waypoint, mission_waypoints_ned
 from auxgps.sim.world import load_world
 
 
@@ -113,10 +113,7 @@ def evaluate(
     world = load_world(world_path)  # fail early, in this process, on a bad world or mission file
     if mission is not None:
         loaded = load_mission(mission.path)
-        path_ned, owner = mission_waypoints_ned(loaded, world.frame, alt_m)
-        if mission.gps_lost_at_seq not in owner:
-            item = loaded.item(mission.gps_lost_at_seq)
-            raise ConfigError(f"{mission.path}: item {item.seq} ({item.name}) is not a place the vehicle reaches")
+        gps_lost_waypoint(loaded, mission_waypoints_ned(loaded, world.frame, alt_m)[1], mission.gps_lost_at_seq)
     mapping_fps = mapping_fps or fps
     jobs = [(str(world_path), alt_m, fps, seed + k, pipeline, sim, mapping_fps, mission) for k in range(runs)]
     workers = max(1, min(workers or os.cpu_count() or 1, runs))

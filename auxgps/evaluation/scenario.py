@@ -17,10 +17,9 @@ from auxgps.core.camera import CameraPose, PinholeCamera, camera_from_config
 from auxgps.core.estimator import Estimator, EstimatorOptions, FrameResult
 from auxgps.core.events import Frame
 from auxgps.core.geometry import R_body_cam_from_mount
-from auxgps.errors import ConfigError
 from auxgps.io.mission import Mission
-from auxgps.sim.faults import FaultInjector, FaultPlan
-from auxgps.sim.flight import SimConfig, fly, imu_bias, lawnmower_waypoints, mission_waypoints_ned
+from auxgps.sim.faults import FaultInjector
+from auxgps.sim.flight import SimConfig, fly, gps_lost_waypoint, imu_bias, lawnmower_waypoints, mission_waypoints_ned
 from auxgps.sim.render import Renderer
 from auxgps.sim.sensors import Sensors
 from auxgps.sim.world import World
@@ -218,9 +217,8 @@ def _map_flight(su: _Setup, alt_m: float, fps: float, progress) -> tuple[Estimat
     traj = fly(lawnmower_waypoints(sim.mapping, alt_m), sim.mapping.speed_m_s, sim.vehicle, su.rng_fly_map, sim.dt_s)
     est = Estimator(pipeline, su.options, frame=su.world.frame)
     truth = _MapTruth()
-    faults = FaultInjector(FaultPlan(list(sim.faults)), "mapping") if sim.faults else None
     _fly(est, su, traj, su.sensors(traj, imu_bias(sim.noise, su.rng_imu)), fps, latency_s=sim.denial.fix_latency_s,
-         on_frame=truth.on_frame, faults=faults if faults is not None and faults.faults else None, notes=su.survey_notes,
+         on_frame=truth.on_frame, faults=FaultInjector.for_flight(sim.faults, "mapping"), notes=su.survey_notes,
          progress=progress)
     return est, truth
 
@@ -329,10 +327,8 @@ def run_once(
     scored = _Scored(su, traj, denied_from)
     sensors = su.sensors(traj, imu_bias(sim.noise, su.rng_imu), denied_from_s=denied_from)
     notes: list[tuple[float, str]] = []
-    faults = FaultInjector(FaultPlan(list(sim.faults))) if sim.faults else None
-    faults = faults if faults is not None and faults.faults else None
     _fly(est, su, traj, sensors, fps, latency_s=den.fix_latency_s, on_frame=scored.on_frame, on_output=scored.on_output,
-         blackout=blackout, faults=faults, notes=notes, progress=progress, effects_after_s=-np.inf)
+         blackout=blackout, faults=FaultInjector.for_flight(sim.faults, "positioning"), notes=notes, progress=progress, effects_after_s=-np.inf)
     return scored.record(seed, est, landmark_errors, map_truth.mapping_ms, blackout,
                          [(t, f"survey: {line}") for t, line in su.survey_notes] + notes)
 
@@ -347,12 +343,9 @@ def run_mission(
     flight: the map it positions on is the one it made on the way out. Faults apply at ``at_s`` after take-off; the
     camera's effects of the way back from the moment GPS1 is lost."""
     path_ned, owner = mission_waypoints_ned(mission, world.frame, alt_m)
-    item = mission.item(gps_lost_at_seq)
-    if not item.has_place or gps_lost_at_seq not in owner:
-        raise ConfigError(f"{mission.source}: item {gps_lost_at_seq} ({item.name}) is not a place the vehicle reaches")
+    k = gps_lost_waypoint(mission, owner, gps_lost_at_seq)
     su = _Setup(world, pipeline, sim, seed)
     traj = fly(path_ned, speed_m_s, sim.vehicle, su.rng_fly_map, sim.dt_s)
-    k = int(np.flatnonzero(owner == gps_lost_at_seq)[-1])
     denied_from = float(traj.reached_t_s[k])
     est = Estimator(pipeline, su.options, frame=world.frame)
     map_truth, scored = _MapTruth(), _Scored(su, traj, denied_from)
@@ -362,8 +355,8 @@ def run_mission(
         scored.on_frame(seen)
 
     notes: list[tuple[float, str]] = []
-    faults = FaultInjector(FaultPlan(list(sim.faults)), None) if sim.faults else None
     _fly(est, su, traj, su.sensors(traj, imu_bias(sim.noise, su.rng_imu), denied_from_s=denied_from), fps,
-         latency_s=sim.denial.fix_latency_s, on_frame=on_frame, on_output=scored.on_output, faults=faults, notes=notes,
+         latency_s=sim.denial.fix_latency_s, on_frame=on_frame, on_output=scored.on_output,
+         faults=FaultInjector.for_flight(sim.faults, None), notes=notes,
          progress=progress, effects_after_s=denied_from)
     return scored.record(seed, est, map_truth.errors(est, pipeline), map_truth.mapping_ms, None, notes)

@@ -106,6 +106,13 @@ class FaultInjector:
         self._held_events: list = []  # telemetry_reordered
         self._rngs: dict[int, np.random.Generator] = {}  # gps1_inflated's noise
 
+    @classmethod
+    def for_flight(cls, faults, flight: str | None) -> "FaultInjector | None":
+        """The injector of ``faults`` that apply to ``flight`` (None: every one, a mission's one flight), or None
+        when none do."""
+        injector = cls(FaultPlan(list(faults)), flight) if faults else None
+        return injector if injector is not None and injector.faults else None
+
     def frame(self, t_s: float, image_bgr: np.ndarray) -> np.ndarray | None:
         """The image the estimator gets at ``t_s`` (None: the camera delivered no frame)."""
         for k, f in enumerate(self.faults):

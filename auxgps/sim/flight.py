@@ -257,6 +257,16 @@ def mission_waypoints_ned(mission: Mission, frame: LocalFrame, alt_m: float | No
     return np.array(path), np.array(owner)
 
 
+def gps_lost_waypoint(mission: Mission, owner: np.ndarray, seq: int) -> int:
+    """Index, in the path :func:`mission_waypoints_ned` made (``owner`` its second array), of the waypoint that
+    reaches mission item ``seq``: where GPS1 is lost. ConfigError when the item is missing or goes nowhere."""
+    item = mission.item(seq)
+    hits = np.flatnonzero(owner == seq)
+    if not len(hits):
+        raise ConfigError(f"{mission.source}: item {seq} ({item.name}) is not a place the vehicle reaches")
+    return int(hits[-1])
+
+
 @dataclass(frozen=True)
 class Trajectory:
     """The true motion, sampled every ``dt_s``.

@@ -203,7 +203,8 @@ class Renderer:
         true velocity, the motion blur (none without it). A lens within :data:`MIN_LENS_HEIGHT_M` of the ground (a
         vehicle standing on it) sees nothing: a black frame, depth 0."""
         c = pose.p_cam_in_ned_m
-        if c[2] > float(self.world.ground_down_m(c[:2])) - self.MIN_LENS_HEIGHT_M:
+        ground_down_m = float(self.world.ground_down_m(c[:2]))  # under the lens (a DSM lookup: once a frame)
+        if c[2] > ground_down_m - self.MIN_LENS_HEIGHT_M:
             H, W = self.camera.height_px, self.camera.width_px
             return RenderedFrame(np.zeros((H, W, 3), np.uint8), pose, np.zeros((H, W), np.float32), self.camera,
                                  np.zeros((0, 3)), np.zeros((0, 2)))
@@ -226,7 +227,7 @@ class Renderer:
         if effects is not None and not effects.is_identity:
             blur_px = None
             if effects.exposure_time_s > 0 and v_ned_m_s is not None:
-                height_m = float(self.world.ground_down_m(c[:2])) - float(c[2])
+                height_m = ground_down_m - float(c[2])
                 blur_px = ground_motion_px(self.camera, pose, v_ned_m_s, height_m, effects.exposure_time_s)
             glint_px = sun_glint_px(self.camera, pose, np.asarray(effects.sun_dir_ned)) if effects.glare_strength > 0 else None
             image = apply_effects(image, effects, rng, motion_px=blur_px, glint_px=glint_px)
