@@ -375,6 +375,30 @@ def _map_build(args) -> int:
     return 0
 
 
+def _ortho_build(args) -> int:
+    from auxgps.io.photos import list_photos
+    from auxgps.photo_workflow import build_orthophoto
+
+    cam_cfg, cfg = _photo_settings(args)
+    files = list_photos(args.images, args.only)
+    print(f"auxgps ortho build: {len(files)} photos from {args.images}")
+    report = build_orthophoto(files, cam_cfg, cfg, args.out, gsd_m=args.gsd_m,
+                              progress=None if args.quiet else lambda msg: print(f"  {msg}", flush=True))
+    for msg in report.messages:
+        print(f"  note: {msg}")
+    p = report.plane
+    print(f"orthophoto: {report.width_px} x {report.height_px} px at {report.gsd_m:.4f} m, {report.crs}, "
+          f"{len(report.used)} photos; ground plane: points' scatter about it {p.rms_m:.2f} m RMS ({p.n_points} points)")
+    s = report.seam_summary()
+    if s["pairs"]:
+        print(f"seams between neighbouring photos ({s['pairs']} pairs): median {s['median_m']:.3f} m, "
+              f"95th percentile {s['p95_m']:.3f} m, max {s['max_m']:.3f} m")
+    else:
+        print("seams: no neighbouring pair could be measured")
+    print(f"wrote {args.out} and {report.path.with_suffix('.json')}")
+    return 0
+
+
 def _locate(args) -> int:
     from auxgps.io.map_file import load_photo_map
     from auxgps.io.photos import list_photos
@@ -567,6 +591,14 @@ def build_parser() -> argparse.ArgumentParser:
     add_photo_options(p)
     p.add_argument("--out", required=True, help="map file to write (.npz)")
     p.set_defaults(func=_map_build)
+
+    p = sub.add_parser("ortho", help="orthophotos from photos")
+    ortho_sub = p.add_subparsers(dest="ortho_command", required=True)
+    p = ortho_sub.add_parser("build", help="an orthophoto GeoTIFF from a folder of geotagged photos (a world's ground)")
+    add_photo_options(p)
+    p.add_argument("--out", required=True, help="GeoTIFF to write (ORTHO.tif; the report goes to ORTHO.json)")
+    p.add_argument("--gsd-m", type=_positive(float), help="metres a pixel (default: the photos' median ground sample distance)")
+    p.set_defaults(func=_ortho_build)
 
     p = sub.add_parser("locate", help="locate photos from a map alone; their own GPS only scores the answer")
     p.add_argument("--map", required=True, help="map file from auxgps map build")

@@ -194,3 +194,133 @@ def locate_photos(files: list[Path], photo_map: PhotoMap, frame: LocalFrame, cam
         "max_error_m": float(np.max(errors)) if errors else None,
     }
     return {"images": rows, "summary": summary}
+
+
+@dataclass
+class OrthoReport:
+    """What ``auxgps ortho build`` did: where the orthophoto is, its grid, the ground plane it lies on, the seam
+    offsets between neighbouring photos (m) and one message per problem."""
+
+    path: Path
+    crs: str
+    gsd_m: float
+    width_px: int
+    height_px: int
+    plane: object
+    used: list[str]
+    seams: list
+    messages: list[str] = field(default_factory=list)
+
+    def seam_summary(self) -> dict:
+        """Seam offsets over neighbouring pairs: count, median, 95th percentile and max, m."""
+        off = np.array([s.offset_m for s in self.seams])
+        if not len(off):
+            return {"pairs": 0, "median_m": None, "p95_m": None, "max_m": None}
+        return {"pairs": int(len(off)), "median_m": float(np.median(off)), "p95_m": float(np.percentile(off, 95)),
+                "max_m": float(off.max())}
+
+    def to_json(self) -> dict:
+        p = self.plane
+        return {
+            "orthophoto": str(self.path), "crs": self.crs, "gsd_m": self.gsd_m, "width_px": self.width_px,
+            "height_px": self.height_px, "photos": self.used,
+            "ground_plane": {"down_m": f"{p.a:.6f} * north_m + {p.b:.6f} * east_m + {p.c:.3f}", "rms_m": p.rms_m,
+                             "points": p.n_points},
+            "seams": self.seam_summary(),
+            "seam_pairs": [{"a": s.a, "b": s.b, "offset_m": s.offset_m, "offset_xy_m": [float(v) for v in s.offset_xy_m],
+                            "response": s.response} for s in self.seams],
+            "messages": self.messages,
+        }
+
+
+def build_orthophoto(files: list[Path], cam_cfg: PhotoCameraConfig | None, cfg: PhotoConfig, out: Path | str,
+                     gsd_m: float | None = None, tile_px: int = 1024,
+                     progress: Callable[[str], None] | None = None) -> OrthoReport:
+    """An orthophoto GeoTIFF at ``out`` from geotagged photos: the photo block's poses (as ``auxgps map build``
+    solves them), each photo projected onto the ground plane fitted to the block's points and blended
+    (:mod:`auxgps.photo.ortho`), in the UTM zone of the block, at ``gsd_m`` metres a pixel (default: the photos'
+    median ground sample distance). Also writes ``OUT.json``, the report."""
+    import json
+    from functools import lru_cache
+
+    import rasterio
+    import rasterio.warp
+
+    from auxgps.core.camera import CameraPose
+    from auxgps.io.geotiff import utm_crs, write_rgb_geotiff
+    from auxgps.io.photos import load_rgb
+    from auxgps.photo.ortho import Mosaic, OrthoPhoto, fit_ground_plane, footprint_ne
+
+    out = Path(out)
+    metas, frame, photos, messages = read_map_photos(files, cam_cfg, cfg, progress)
+    photo_map = build_photo_map(photos, cfg.map)
+    messages.extend(photo_map.messages)
+    plane = fit_ground_plane(photo_map.p_ned_m)
+    camera_id = {m.path.name: m.camera_id for m in metas}
+    path_of = {m.path.name: m.path for m in metas}
+    ortho_photos = [OrthoPhoto(sp.name, photo_map.cameras[camera_id[sp.name]], CameraPose(sp.p_cam_in_ned_m, sp.R_ned_cam))
+                    for sp in photo_map.photos]
+    if gsd_m is None:
+        gsd = [(plane.down_m(*p.pose.p_cam_in_ned_m[:2]) - p.pose.p_cam_in_ned_m[2]) / p.camera.focal_px for p in ortho_photos]
+        gsd_m = float(np.median(gsd))
+    if not (gsd_m > 0 and np.isfinite(gsd_m)):
+        raise PhotoError(f"ground sample distance {gsd_m} m: the photos are not above the ground plane")
+
+    wgs84 = rasterio.crs.CRS.from_epsg(4326)
+    crs = utm_crs(frame.lat_deg, frame.lon_deg)
+
+    def xy_of_ne(n, e):
+        shape = np.shape(n)
+        lat, lon, _ = frame.to_geodetic(np.stack([np.ravel(n), np.ravel(e), np.zeros(np.size(n))], axis=-1))
+        x, y = rasterio.warp.transform(wgs84, crs, np.ravel(lon), np.ravel(lat))
+        return np.reshape(x, shape), np.reshape(y, shape)
+
+    def ne_of_xy(x, y):
+        shape = np.shape(x)
+        lon, lat = rasterio.warp.transform(crs, wgs84, np.ravel(x), np.ravel(y))
+        p = frame.to_ned(lat_deg=np.asarray(lat), lon_deg=np.asarray(lon), alt_amsl_m=np.full(np.size(x), frame.alt_amsl_m))
+        return p[:, 0].reshape(shape), p[:, 1].reshape(shape)
+
+    # The grid: north up, over every photo's footprint, its corners on whole multiples of the pixel size.
+    corners = [fp for p in ortho_photos if (fp := footprint_ne(p, plane)) is not None]
+    if not corners:
+        raise PhotoError("no photo looks at the ground (every footprint reaches the horizon)")
+    x, y = xy_of_ne(*np.vstack(corners).T)
+    x0, x1 = np.floor(x.min() / gsd_m) * gsd_m, np.ceil(x.max() / gsd_m) * gsd_m
+    y0, y1 = np.floor(y.min() / gsd_m) * gsd_m, np.ceil(y.max() / gsd_m) * gsd_m
+    width, height = int(round((x1 - x0) / gsd_m)), int(round((y1 - y0) / gsd_m))
+    transform = rasterio.Affine(gsd_m, 0.0, x0, 0.0, -gsd_m, y1)
+    inv = ~transform
+
+    def affine(t, a, b):
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        return t.a * a + t.b * b + t.c, t.d * a + t.e * b + t.f
+
+    def ne_of_colrow(col, row):
+        return ne_of_xy(*affine(transform, col, row))
+
+    def colrow_of_ne(n, e):
+        return affine(inv, *xy_of_ne(n, e))
+
+    @lru_cache(maxsize=64)
+    def image(name: str) -> np.ndarray:
+        return load_rgb(path_of[name])[0]
+
+    mosaic = Mosaic(ortho_photos, image, plane, ne_of_colrow, colrow_of_ne)
+    messages.extend(f"{name}: left out of the orthophoto (its view reaches the horizon)" for name in mosaic.left_out)
+
+    def tiles():
+        for row0 in range(0, height, tile_px):
+            for col0 in range(0, width, tile_px):
+                h, w = min(tile_px, height - row0), min(tile_px, width - col0)
+                rgb, seen = mosaic.tile(row0, col0, h, w)
+                if progress is not None:
+                    progress(f"tile rows {row0}-{row0 + h}, cols {col0}-{col0 + w}")
+                yield row0, col0, rgb, seen
+
+    write_rgb_geotiff(out, crs, transform, width, height, tiles())
+    seams = mosaic.seam_offsets(gsd_m)
+    report = OrthoReport(out, crs.to_string(), gsd_m, width, height, plane, [p.name for p in ortho_photos if p.name not in mosaic.left_out],
+                         seams, messages)
+    out.with_suffix(".json").write_text(json.dumps(report.to_json(), indent=1) + "\n")
+    return report

@@ -29,6 +29,11 @@ def test_core_modules_import_only_maths_and_the_core():
     for path in sorted(CORE.glob("*.py")):
         for name in imports_of(path):
             assert any(name == a or name.startswith(a + ".") for a in CORE_ALLOWED), f"{path.name} imports {name}"
+    # The photo block (maps and orthophotos from photos) is core too: no file, clock or simulator in it.
+    for path in sorted((REPO / "auxgps" / "photo").glob("*.py")):
+        for name in imports_of(path):
+            assert any(name == a or name.startswith(a + ".") for a in CORE_ALLOWED | {"auxgps.photo", "functools"}), \
+                f"photo/{path.name} imports {name}"
 
 
 def test_core_modules_read_no_clock_device_or_socket():

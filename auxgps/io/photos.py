@@ -232,6 +232,15 @@ def load_gray(path: Path | str, max_side_px: int = 0) -> tuple[np.ndarray, float
 
     Raises :class:`PhotoError` naming the file if it is missing, not an image, truncated or corrupt.
     """
+    return _decode(path, "L", max_side_px)
+
+
+def load_rgb(path: Path | str, max_side_px: int = 0) -> tuple[np.ndarray, float]:
+    """Decode a photo as (H, W, 3) uint8 RGB; otherwise as :func:`load_gray`."""
+    return _decode(path, "RGB", max_side_px)
+
+
+def _decode(path: Path | str, mode: str, max_side_px: int) -> tuple[np.ndarray, float]:
     path = Path(path)
     try:
         with Image.open(path) as image:
@@ -239,19 +248,19 @@ def load_gray(path: Path | str, max_side_px: int = 0) -> tuple[np.ndarray, float
             if max_side_px and max(full_w, full_h) > max_side_px:
                 # draft() picks the largest DCT reduction that still leaves at least the requested size.
                 ratio = max_side_px / max(full_w, full_h)
-                image.draft("L", (math.ceil(full_w * ratio), math.ceil(full_h * ratio)))
-            gray = np.asarray(image.convert("L"))
+                image.draft(mode, (math.ceil(full_w * ratio), math.ceil(full_h * ratio)))
+            pixels = np.asarray(image.convert(mode))
     except FileNotFoundError:
         raise PhotoError(f"{path}: no such file") from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
         raise PhotoError(f"{path}: unreadable, truncated or corrupt image ({type(err).__name__}: {err})") from None
-    if gray.size == 0:
+    if pixels.size == 0:
         raise PhotoError(f"{path}: image is empty")
-    h, w = gray.shape
+    h, w = pixels.shape[:2]
     if max_side_px and max(w, h) > max_side_px:
         import cv2
 
         r = max_side_px / max(w, h)
-        gray = cv2.resize(gray, (max(1, round(w * r)), max(1, round(h * r))), interpolation=cv2.INTER_AREA)
-    scale = full_w / gray.shape[1]
-    return np.ascontiguousarray(gray), float(scale)
+        pixels = cv2.resize(pixels, (max(1, round(w * r)), max(1, round(h * r))), interpolation=cv2.INTER_AREA)
+    scale = full_w / pixels.shape[1]
+    return np.ascontiguousarray(pixels), float(scale)

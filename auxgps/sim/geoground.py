@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from auxgps.core.camera import CameraPose, PinholeCamera
+from auxgps.core.lattice import node_axis, upsample
 from auxgps.sim.georaster import GeoRaster, RasterLevel
 
 #: Output pixels (or grid cells) between the nodes where the reprojection is computed exactly.
@@ -32,23 +33,6 @@ MAX_MARCH_STEPS = 256
 REFINE_ITERATIONS = 6
 #: Colour of the ground off the orthophoto (BGR).
 OFF_RASTER_BGR = (0, 0, 0)
-
-
-def node_axis(n_px: int, step: int = NODE_STEP) -> np.ndarray:
-    """Coordinates of the nodes along an axis of ``n_px`` pixels, ``step * k + (step - 1) / 2`` for k from -1
-    to ceil(n_px / step): where ``cv2.resize`` by ``step``, cropped by ``step``, puts its samples (see
-    :func:`upsample`)."""
-    k = np.arange(-1, -(-n_px // step) + 1)
-    return step * k + (step - 1) / 2.0
-
-
-def upsample(nodes: np.ndarray, n_rows: int, n_cols: int, step: int = NODE_STEP) -> np.ndarray:
-    """Values at the nodes of :func:`node_axis` ((gh, gw) or (gh, gw, C) float32) -> bilinear at every pixel
-    (n_rows, n_cols[, C]): cv2.resize with the nodes exactly on its sample positions, so in-between pixels are
-    interpolated and none extrapolated."""
-    gh, gw = nodes.shape[:2]
-    big = cv2.resize(nodes, (gw * step, gh * step), interpolation=cv2.INTER_LINEAR)
-    return big[step : step + n_rows, step : step + n_cols]
 
 
 def _cell_m(raster: GeoRaster, frame) -> float:
@@ -73,7 +57,7 @@ class GeoGround:
         self._xn, self._yn = xn, yn  # (W,), (H,) float32 normalised image coordinates of the ideal pixels
         W, H = camera.width_px, camera.height_px
         K = camera.K
-        uu, vv = node_axis(W), node_axis(H)
+        uu, vv = node_axis(W, NODE_STEP), node_axis(H, NODE_STEP)
         self._node_xy = np.stack(np.meshgrid((uu - K[0, 2]) / K[0, 0], (vv - K[1, 2]) / K[1, 1]), axis=-1)  # (gh, gw, 2)
         self._ortho_cell_m = _cell_m(self.ortho, self.frame)
         if self.dsm is not None:
@@ -139,7 +123,7 @@ class GeoGround:
         img, c0, r0 = window
         nodes = np.stack([col - 0.5 - c0, row - 0.5 - r0], axis=-1)
         nodes[~hit] = -1e6  # off the image: the border colour
-        m = upsample(nodes.astype(np.float32), H, W)
+        m = upsample(nodes.astype(np.float32), H, W, NODE_STEP)
         out = cv2.remap(img, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=OFF_RASTER_BGR)
         return out
 
@@ -238,7 +222,7 @@ class GeoGround:
         (n0, e0), north up: (gh, gw) float32, m. Also the grid's nodes, for the colour: their NED points
         (gh', gw', 3) and grid coordinates along columns and rows."""
         alt = self.frame.alt_amsl_m
-        uu, vv = node_axis(gw), node_axis(gh)
+        uu, vv = node_axis(gw, NODE_STEP), node_axis(gh, NODE_STEP)
         e_nodes, n_nodes = np.meshgrid(e0 + s * uu, n0 - s * vv)
         p_nodes = np.stack([n_nodes, e_nodes, np.zeros_like(n_nodes)], axis=-1)
         x, y, h0 = self.dsm.crs_from_ned(self.frame, p_nodes)
@@ -247,13 +231,13 @@ class GeoGround:
         nodes = np.stack([col - 0.5, row - 0.5, h0 - alt], axis=-1)
         if window is None:
             heights = np.zeros((gh, gw), np.float32)
-            up = upsample(nodes[..., 2].astype(np.float32), gh, gw)
+            up = upsample(nodes[..., 2].astype(np.float32), gh, gw, NODE_STEP)
             return up - heights, (p_nodes, uu, vv)
         data, c0, r0 = window
         data = np.where(np.isfinite(data), data - np.float32(alt), np.float32(0.0)).astype(np.float32)
         nodes[..., 0] -= c0
         nodes[..., 1] -= r0
-        up = upsample(nodes.astype(np.float32), gh, gw)
+        up = upsample(nodes.astype(np.float32), gh, gw, NODE_STEP)
         heights = cv2.remap(data, up[..., 0], up[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
         return np.ascontiguousarray(up[..., 2] - heights), (p_nodes, uu, vv)
 
