@@ -226,6 +226,9 @@ class PhotoMapConfig:
     # the figure moves with the focal length the block finds).
     gps_bias_sigma_m: NonNegative = 0.5
     height_sigma_m: Positive = 0.5  # height above take-off (DJI RelativeAltitude)
+    # A photo without a height above take-off: its GPS altitude, to this one sigma, holds the block level (the
+    # GPS's horizontal positions hardly tell a tilted block from a level one: Seneca's came out 10 degrees off).
+    gps_alt_sigma_m: Positive = 5.0
     refine_intrinsics: bool = True  # focal length and two radial distortion terms per camera
     # How well the focal length is known (one sigma, relative) from the camera file, or else from EXIF. Photos of
     # flat ground flown one way can hardly tell it from the ground's height: refined freely, the two outer
@@ -262,6 +265,8 @@ class PhotoConfig:
 
     max_side_px: Annotated[int, Field(ge=0, le=100000)] = 1200  # photos are reduced to this (0: full resolution)
     n_features: Annotated[int, Field(ge=100, le=200000)] = 20000
+    # Fewer features than this at SIFT's contrast threshold, and it is lowered once (bare soil, sand, snow).
+    min_features: Annotated[int, Field(ge=0, le=200000)] = 2000
     map: PhotoMapConfig = Field(default_factory=PhotoMapConfig)
     locate: PhotoLocateConfig = Field(default_factory=PhotoLocateConfig)
 

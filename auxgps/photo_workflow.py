@@ -52,12 +52,15 @@ def camera_for_photo(meta: PhotoMeta, cam_cfg: PhotoCameraConfig | None) -> tupl
 
 
 def photo_prior(meta: PhotoMeta, frame: LocalFrame, *, use_gps: bool) -> PhotoPrior:
-    """A photo's metadata as priors in ``frame``; its GPS only when ``use_gps`` (never when locating it)."""
-    gps = None
+    """A photo's metadata as priors in ``frame``; its GPS only when ``use_gps`` (never when locating it), its GPS
+    altitude too when it has no height above take-off."""
+    gps = gps_alt = None
     if use_gps and meta.has_gps:
         gps = frame.to_ned(lat_deg=meta.lat_deg, lon_deg=meta.lon_deg, alt_amsl_m=frame.alt_amsl_m)[:2]
+        if meta.rel_alt_m is None and meta.alt_amsl_m is not None:
+            gps_alt = meta.alt_amsl_m - frame.alt_amsl_m
     R = R_ned_cam_from_gimbal(*meta.gimbal_rpy_rad) if meta.gimbal_rpy_rad is not None else None
-    return PhotoPrior(gps_ne_m=gps, height_m=meta.rel_alt_m, R_ned_cam=R)
+    return PhotoPrior(gps_ne_m=gps, height_m=meta.rel_alt_m, R_ned_cam=R, gps_alt_m=gps_alt)
 
 
 def map_origin(metas: list[PhotoMeta]) -> LocalFrame:
@@ -73,7 +76,7 @@ def map_origin(metas: list[PhotoMeta]) -> LocalFrame:
 
 def _features(meta: PhotoMeta, cfg: PhotoConfig):
     gray, scale = load_gray(meta.path, cfg.max_side_px)
-    return detect_sift(gray, scale, cfg.n_features)
+    return detect_sift(gray, scale, cfg.n_features, cfg.min_features)
 
 
 @dataclass

@@ -277,3 +277,33 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert err.startswith("auxgps: error:") and err.count("\n") == 1
     assert main(["map", "build", "--images", str(tmp_path / "missing"), "--out", str(tmp_path / "m.npz")]) == 1
     assert "no such folder" in capsys.readouterr().err
+
+
+def test_gps_altitude_is_a_prior_only_without_a_height_above_take_off():
+    from auxgps.core.geometry import LocalFrame
+    from auxgps.io.photos import PhotoMeta
+    from auxgps.photo_workflow import photo_prior
+
+    frame = LocalFrame(41.0, -83.0, 280.0)
+    fixed_wing = PhotoMeta(Path("a.jpg"), 1600, 1200, lat_deg=41.0001, lon_deg=-83.0, alt_amsl_m=286.5)
+    prior = photo_prior(fixed_wing, frame, use_gps=True)
+    assert prior.height_m is None and prior.gps_alt_m == pytest.approx(6.5)
+    assert photo_prior(fixed_wing, frame, use_gps=False).gps_alt_m is None  # a located photo's GPS is never read
+    dji = PhotoMeta(Path("b.jpg"), 4000, 2250, lat_deg=41.0001, lon_deg=-83.0, alt_amsl_m=286.5, rel_alt_m=40.0)
+    prior = photo_prior(dji, frame, use_gps=True)
+    assert prior.height_m == 40.0 and prior.gps_alt_m is None
+
+
+def test_bare_ground_gets_sift_features_at_a_lower_contrast_threshold():
+    import cv2
+
+    from auxgps.photo.features import detect_sift
+
+    rng = np.random.default_rng(4)
+    soil = cv2.GaussianBlur(rng.normal(128, 20, (480, 640)), (0, 0), 1.0)  # faint texture, as bare soil
+    soil = np.clip(soil, 0, 255).astype(np.uint8)
+    plain = detect_sift(soil, 1.0, 20000)
+    lowered = detect_sift(soil, 1.0, 20000, min_features=2000)
+    assert len(plain) < 500 < len(lowered), (len(plain), len(lowered))
+    rich = np.clip(cv2.GaussianBlur(rng.normal(128, 60, (480, 640)), (0, 0), 1.0), 0, 255).astype(np.uint8)
+    assert len(detect_sift(rich, 1.0, 20000, min_features=2000)) == len(detect_sift(rich, 1.0, 20000)) > 2000  # no retry

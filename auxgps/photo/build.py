@@ -95,6 +95,12 @@ def build_photo_map(photos: list[MapPhoto], cfg, rng: np.random.Generator | None
         raise PhotoMapError("could not place every overlapping photo (degenerate overlaps)")
     R0 = np.array([v[0] for v in init])
     C0 = np.array([v[1] for v in init])
+    # GPS altitudes are over the origin's level, not the ground's: the first guess (heights above the ground
+    # under the photos) moves up or down as a whole to meet them.
+    alt_idx = np.array([i for i, p in enumerate(photos) if p.prior.height_m is None and p.prior.gps_alt_m is not None], int)
+    if len(alt_idx) == n:
+        gps_alt = np.array([photos[i].prior.gps_alt_m for i in alt_idx])
+        C0[:, 2] -= np.median(C0[:, 2] + gps_alt)  # up = -down
 
     tracks = _build_tracks(photos, pair_matches)
     if tracks.n_tracks < 20:
@@ -127,7 +133,11 @@ def build_photo_map(photos: list[MapPhoto], cfg, rng: np.random.Generator | None
     gps_ne = np.array([photos[i].prior.gps_ne_m for i in gps_idx]).reshape(-1, 2)
     h_idx = np.array([i for i, p in enumerate(photos) if p.prior.height_m is not None], int)
     h_val = np.array([photos[i].prior.height_m for i in h_idx], float)
-    priors = (gps_idx, gps_ne, cfg.gps_sigma_h_m, h_idx, h_val, cfg.height_sigma_m)
+    h_sigma = np.full(len(h_idx), cfg.height_sigma_m)
+    if len(alt_idx) == n:  # every photo by its GPS altitude (a mix with heights above take-off: those alone)
+        h_idx, h_sigma = alt_idx, np.full(n, cfg.gps_alt_sigma_m)
+        h_val = np.array([photos[i].prior.gps_alt_m for i in alt_idx], float)
+    priors = (gps_idx, gps_ne, cfg.gps_sigma_h_m, h_idx, h_val, h_sigma)
     obs_photo, obs_pt, obs_uv, obs_sig = tracks.photo[sel], new_id[tracks.track[sel]], tracks.uv[sel], sigma_obs[sel]
     X_ba = X_all[ba_tracks]
     for gate in (cfg.init_outlier_sigma / 2.0, 3.0):

@@ -99,8 +99,8 @@ def _bundle_adjust(model, cam0, intr0, X0, photo, pt_idx, uv_obs, sigma_px, prio
                    focal_sigma_rel):
     """Levenberg-Marquardt bundle adjustment with the points eliminated (Schur complement) and Huber weights.
 
-    ``priors`` = (gps_idx, gps_ne (G, 2), gps_sigma, h_idx, h_val, h_sigma): each photo's GPS position and
-    height above the origin as soft constraints. With ``refine_intrinsics``, each camera's focal length is held
+    ``priors`` = (gps_idx, gps_ne (G, 2), gps_sigma, h_idx, h_val, h_sigma (a number or one per height)): each
+    photo's GPS position and height above the origin as soft constraints. With ``refine_intrinsics``, each camera's focal length is held
     to its starting value within ``focal_sigma_rel`` (relative, one sigma) and its distortion weakly to zero.
     Returns photo parameters (n, 6), intrinsics (c, 3) and points (m, 3).
     """
@@ -123,7 +123,7 @@ def _bundle_adjust(model, cam0, intr0, X0, photo, pt_idx, uv_obs, sigma_px, prio
         rh = -cam[h_idx, 5] - h_val
         g[6 * h_idx + 5] += -rh / h_sigma**2
         H[6 * h_idx + 5] += 1.0 / h_sigma**2
-        cost += float(np.sum(rg**2) / gps_sigma**2 + np.sum(rh**2) / h_sigma**2)
+        cost += float(np.sum(rg**2) / gps_sigma**2 + np.sum(rh**2 / h_sigma**2))
         k_sigma = 0.5 if refine_intrinsics else 1e-6  # distortion pulled weakly to zero; fixed when not refined
         for a in range(3):
             sa = k_sigma if a > 0 else (focal_sigma_rel if refine_intrinsics else 1e-6)  # intr[:, 0] is log(f / f0)

@@ -21,11 +21,14 @@ class PhotoPrior:
     gps_ne_m : (2,) north, east of the camera, m (the map's origin frame)
     height_m : camera height above the map origin (the take-off point), m
     R_ned_cam : (3, 3) attitude from the gimbal
+    gps_alt_m : the GPS altitude over the map origin's level, m, for a photo without ``height_m`` (a receiver's
+        altitude: metres of noise, and the ground's own level unknown, so it is no height above ground)
     """
 
     gps_ne_m: np.ndarray | None = None
     height_m: float | None = None
     R_ned_cam: np.ndarray | None = None
+    gps_alt_m: float | None = None
 
 
 @dataclass(frozen=True)
