@@ -62,6 +62,12 @@ class TelemetryNoiseConfig:
     altitude_m: NonNegative = 0.05
     attitude_deg: NonNegative = 0.2
     heading_deg: NonNegative = 0.2
+    # A compass-aided heading is off by a slowly wandering amount, not only by white noise: ArduCopter SITL's EKF is
+    # 2 deg off before take-off and drifts from -0.5 to +1.5 deg over two minutes (tools/sitl_telemetry_error.py,
+    # docs/missions.md). One sigma of that error (a first-order Gauss-Markov process, drawn per run) and its
+    # correlation time; 0 (the default) leaves it out. config/sim/heading_drift.yaml sets what SITL showed.
+    heading_error_deg: NonNegative = 0.0
+    heading_error_tau_s: Positive = 60.0
     accel_noise_m_s2: NonNegative = 0.1  # per IMU sample
     accel_bias_m_s2: NonNegative = 0.1  # one sigma of the constant bias drawn per run, per axis (body)
     imu_rate_hz: Annotated[float, Field(ge=50, le=1000)] = 100.0

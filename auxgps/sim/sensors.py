@@ -4,6 +4,8 @@ At each simulation step the autopilot reports what it would at its rates: an att
 ``imu_rate_hz``), its height above home (the barometer, at ``baro_rate_hz``; home is the world's origin, on the
 ground), and GPS1 (at ``gps_rate_hz``), which reaches it ``gps1_lag_s`` after its receiver measured it. From
 ``gps_denied_from_s`` on, GPS1 reports no fix (fix type 1, no satellites, no position), as a jammed receiver does.
+With ``heading_error_deg`` set, the attitude's heading also carries a slowly wandering error (first-order
+Gauss-Markov, drawn per run from its own generator, so the other streams are those of a run without it).
 """
 
 from __future__ import annotations
@@ -29,6 +31,13 @@ class Sensors:
         every = lambda rate_hz: max(1, int(round(1.0 / (rate_hz * dt))))  # noqa: E731
         self.imu_every, self.baro_every, self.gps_every = every(noise.imu_rate_hz), every(noise.baro_rate_hz), every(noise.gps_rate_hz)
         self._gps_pending: list[Gps1] = []  # measured, not yet reached the autopilot
+        self._heading_err_rad = 0.0
+        self._rng_heading = None
+        if noise.heading_error_deg > 0:
+            self._rng_heading = np.random.default_rng(rng_imu.integers(2**63))
+            self._heading_sigma_rad = np.deg2rad(noise.heading_error_deg)
+            self._heading_err_rad = float(self._rng_heading.standard_normal() * self._heading_sigma_rad)
+            self._heading_keep = float(np.exp(-self.imu_every * dt / noise.heading_error_tau_s))
 
     def events_at(self, i: int) -> list:
         """What the autopilot sends at step ``i``: attitude before the IMU sample it rotates; GPS1 readings whose
@@ -37,6 +46,10 @@ class Sensors:
         t = float(traj.t_s[i])
         if i % self.imu_every == 0:
             t_imu, f_body, euler = sense_imu(traj, i, noise, self.bias, self.rng_imu)
+            if self._rng_heading is not None:
+                k = self._heading_keep
+                self._heading_err_rad = k * self._heading_err_rad + np.sqrt(1.0 - k * k) * self._heading_sigma_rad * self._rng_heading.standard_normal()
+                euler = euler + np.array([0.0, 0.0, self._heading_err_rad])
             out += [Attitude(t_imu, euler), Imu(t_imu, f_body)]
         if i % self.baro_every == 0:
             alt = -traj.p_ned_m[i, 2] + noise.altitude_m * self.rng_tel.standard_normal()
