@@ -15,7 +15,7 @@ demo: $(BIN)/.installed
 	$(BIN)/auxgps demo
 
 test: $(BIN)/.installed
-	$(BIN)/python -m pytest -q -m "not packaging and not flight"
+	$(BIN)/python -m pytest -q -m "not packaging and not flight and not measurement"
 
 clean:
 	rm -rf $(VENV) build *.egg-info

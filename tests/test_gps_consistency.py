@@ -84,10 +84,11 @@ def test_along_and_across_a_heading():
     assert (a, c) == pytest.approx((0.0, 1.0), abs=1e-12)
 
 
-@pytest.mark.slow
+@pytest.mark.measurement
 @pytest.mark.skipif(not BRIGHTON.is_dir(), reason=f"Brighton Beach photos not found at {BRIGHTON}")
 def test_brighton_block(tmp_path):
-    """All 18 photos in one block with a 100 m GPS prior (about 2 min on one core)."""
+    """All 18 photos in one block with a 100 m GPS prior (about 2 min on one core): the figures of
+    docs/photos.md, re-run on demand with ``pytest -m measurement`` (the tool's logic is tested above)."""
     out = tmp_path / "gps.json"
     assert gc.main(["--images", str(BRIGHTON), "--camera", str(CAMERA), "--json", str(out)]) == 0
     r = json.loads(out.read_text())
