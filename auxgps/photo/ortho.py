@@ -1,5 +1,5 @@
-"""Orthophotos from solved photos: each photo projected onto the ground and blended (:func:`mosaic_tile`), and the
-offsets at the seams between neighbouring photos measured (:func:`seam_offsets`).
+"""Orthophotos from solved photos: each photo projected onto the ground and blended (:meth:`Mosaic.tile`), and the
+offsets at the seams between neighbouring photos measured (:meth:`Mosaic.seam_offsets`).
 
 The poses are the photo block's (:func:`auxgps.photo.build.build_photo_map`); the ground is the plane fitted
 to the block's 3D points (:func:`fit_ground_plane`), so relief off that plane shows as parallax at the seams,
@@ -219,7 +219,7 @@ class Mosaic:
         if over:
             nodes = self._nodes(row0, col0, h, w)
             for p in over:
-                colour, wt = _resample(self._proj[p.name], self.images(p.name), self._weight(p.camera), nodes, h, w)
+                colour, wt = self._single(p, nodes, h, w)
                 acc += colour.astype(np.float32) * wt[..., None]
                 wsum += wt
         seen = wsum > 1e-6
@@ -235,10 +235,9 @@ class Mosaic:
         n, e = np.asarray(n, float), np.asarray(e, float)
         return np.stack([n, e, self.plane.down_m(n, e)], axis=-1)
 
-    def single(self, photo: OrthoPhoto, row0: int, col0: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-        """One photo alone over the window: (h, w, 3) uint8 and its (h, w) weight."""
-        return _resample(self._proj[photo.name], self.images(photo.name), self._weight(photo.camera),
-                         self._nodes(row0, col0, h, w), h, w)
+    def _single(self, photo: OrthoPhoto, nodes: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+        """One photo alone over the window whose ground ``nodes`` are given: (h, w, 3) uint8 and its (h, w) weight."""
+        return _resample(self._proj[photo.name], self.images(photo.name), self._weight(photo.camera), nodes, h, w)
 
     def seam_offsets(self, gsd_m: float, patch_px: int = SEAM_PATCH_PX) -> list[Seam]:
         """The offset between every two photos whose footprints overlap by at least a quarter of the patch: each
@@ -255,8 +254,9 @@ class Mosaic:
                 c, r = inter.reshape(-1, 2).mean(axis=0)
                 half = patch_px // 2
                 row0, col0 = int(r) - half, int(c) - half
-                ia, wa = self.single(pa, row0, col0, patch_px, patch_px)
-                ib, wb = self.single(pb, row0, col0, patch_px, patch_px)
+                nodes = self._nodes(row0, col0, patch_px, patch_px)  # the same ground for both photos
+                ia, wa = self._single(pa, nodes, patch_px, patch_px)
+                ib, wb = self._single(pb, nodes, patch_px, patch_px)
                 both = (wa > 0) & (wb > 0)
                 if both.mean() < 0.25:
                     continue
