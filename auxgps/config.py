@@ -170,6 +170,29 @@ class FusionConfig:
 
 
 @dataclass(config=_STRICT, frozen=True)
+class HeadingConfig:
+    """The autopilot's heading error, solved from the images rather than taken as it comes (auxgps.core.heading).
+
+    ArduCopter SITL's EKF heading was 2 deg off before take-off and -0.5 to +1.5 deg over a mission; the error is
+    followed as a first-order Gauss-Markov process of ``sigma_deg`` and ``tau_s``.
+    """
+
+    solve: bool = True
+    sigma_deg: Positive = 2.0
+    tau_s: Positive = 300.0
+    # While mapping: each frame is paired with an earlier one at least min_baseline_m away and at most
+    # max_pair_gap_s before it, sharing at least min_shared landmarks; GPS1's error over that interval, across it.
+    min_baseline_m: Positive = 8.0
+    max_pair_gap_s: Positive = 5.0
+    min_shared: Annotated[int, Field(ge=3)] = 15
+    gps_relative_m: Positive = 0.05
+    # A positioning fix's turn against the map is no better than the map's own heading (what mapping solved it to).
+    rotation_floor_deg: Positive = 0.3
+    gate_chi2: Positive = 9.0  # 3 sigma on the one degree of freedom
+    reset_after: Annotated[int, Field(ge=2)] = 10  # refused in a row: the error has jumped, the estimate reopens
+
+
+@dataclass(config=_STRICT, frozen=True)
 class PipelineConfig:
     """Everything the estimator needs: camera, mount, detector, noise model, mapping and positioning."""
 
@@ -180,6 +203,7 @@ class PipelineConfig:
     mapping: MappingConfig = Field(default_factory=MappingConfig)
     positioning: PositioningConfig = Field(default_factory=PositioningConfig)
     fusion: FusionConfig = Field(default_factory=FusionConfig)
+    heading: HeadingConfig = Field(default_factory=HeadingConfig)
 
 
 @dataclass(config=_STRICT, frozen=True)

@@ -41,6 +41,7 @@ from auxgps.core.frame_check import FrameCheck
 from auxgps.core.fusion import FusedEstimate, GateDecision, ImuSample, NavFilter
 from auxgps.core.geometry import LocalFrame, R_body_cam_from_mount, R_ned_body_from_euler
 from auxgps.core.gps_output import GpsOutput, gps_output
+from auxgps.core.heading import HeadingEstimate, HeadingTracker, MotionView, ground_points_ne
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.localise import Fix, Localiser, NoFix, PositionPrior
 from auxgps.core.mapping import Mapper, MappingResult
@@ -82,6 +83,7 @@ class FrameJob:
     mapping: bool
     p_gps_ned_m: np.ndarray | None
     speed_h_m_s: float | None = None  # the filter's horizontal speed at the capture (None: no filter)
+    heading: HeadingEstimate | None = None  # the autopilot's heading error taken out of R_ned_body (None: not solved)
 
 
 @dataclass(frozen=True)
@@ -114,6 +116,7 @@ class FrameResult:
     mapped: MappingResult | None = None
     features: Features | None = None
     note: str | None = None  # a line for the events log (a camera fault began or ended, the frame rate fell)
+    heading_offset_deg: float | None = None  # the autopilot's heading error as solved after this frame
 
 
 @dataclass(frozen=True)
@@ -191,6 +194,7 @@ class Estimator:
         self.mapper = Mapper(cfg, self.camera, self.R_body_cam, self.landmarks, self.stopwatch)
         self.localiser = Localiser(cfg, self.camera, self.R_body_cam, self.landmarks, self.stopwatch)
         self.supervisor = Supervisor(self.options.supervisor)
+        self.heading = HeadingTracker(cfg.heading) if cfg.heading.solve else None
         self.landmarks.keep_journal(self.supervisor.cfg.undo_span_s)
         self._undo_found_at_s: float | None = None  # GPS1 found dragged by the gate: the map is to be undone
         self.filter: NavFilter | None = None
@@ -266,7 +270,7 @@ class Estimator:
             return
         att = self._nearest_attitude(rec.t_s)
         if abs(att.t_s - rec.t_s) <= self.options.max_attitude_age_s:
-            self.filter.propagate(ImuSample(rec.t_s, rec.f_body_m_s2, R_ned_body_from_euler(*att.euler_rad)))
+            self.filter.propagate(ImuSample(rec.t_s, rec.f_body_m_s2, self._R_ned_body(att.euler_rad, self._heading_at(rec.t_s))))
 
     def _attitude_age_s(self, t_s: float) -> float:
         """How far the nearest attitude sample is from ``t_s``, s (inf without one)."""
@@ -354,6 +358,15 @@ class Estimator:
     def _attitude_at(self, t_s: float) -> np.ndarray:
         return self._nearest_attitude(t_s).euler_rad
 
+    def _heading_at(self, t_s: float) -> HeadingEstimate | None:
+        return self.heading.at(t_s) if self.heading is not None else None
+
+    @staticmethod
+    def _R_ned_body(euler_rad: np.ndarray, heading: HeadingEstimate | None) -> np.ndarray:
+        """The attitude with the autopilot's heading error taken out."""
+        roll, pitch, yaw = euler_rad
+        return R_ned_body_from_euler(roll, pitch, yaw - (heading.offset_rad if heading is not None else 0.0))
+
     # -- frames --------------------------------------------------------------------------------------------
 
     def begin_frame(self, frame: Frame) -> FrameJob | FrameResult:
@@ -372,20 +385,21 @@ class Estimator:
         if self._attitude_lost and self._attitudes:
             self._attitude_lost = False
             self._pending_note = _joined(self._pending_note, "attitude stream back")
+        heading = self._heading_at(frame.t_s)
         if self.filter is None and self._attitudes and alt is not None and len(self.landmarks) and not self.supervisor.gps1_trusted:
             # No filter, no GPS1, a map: locate without a prior, to start the filter (acquisition)
-            return FrameJob(frame, R_ned_body_from_euler(*self._attitude_at(frame.t_s)), alt, None, False, None)
+            return FrameJob(frame, self._R_ned_body(self._attitude_at(frame.t_s), heading), alt, None, False, None, heading=heading)
         if self.filter is None or not self._attitudes or alt is None:
             missing = "filter (no GPS1 fix yet)" if self.filter is None else "attitude" if not self._attitudes else "height"
             return FrameResult(frame.t_s, "skipped", f"no {missing}")
-        R = R_ned_body_from_euler(*self._attitude_at(frame.t_s))
+        R = self._R_ned_body(self._attitude_at(frame.t_s), heading)
         mapping = self.supervisor.gps1_trusted
         # Where GPS1 puts the camera at the frame's time: the filter, which fuses GPS1 at its measurement time with
         # the IMU, interpolates between GPS1's readings and carries its lag.
         est = self.filter.estimate_at(frame.t_s)
         p_gps = est.p_ned_m if mapping else None
         return FrameJob(frame, R, alt, PositionPrior(est.p_ned_m, est.sigma_h_worst_m), mapping, p_gps,
-                        float(np.hypot(est.v_ned_m_s[0], est.v_ned_m_s[1])))
+                        float(np.hypot(est.v_ned_m_s[0], est.v_ned_m_s[1])), heading)
 
     def _check_frame(self, job: FrameJob) -> tuple[str | None, str | None]:
         """The frame's fault (None: fit to locate from) and a line for the events log when a fault begins or ends
@@ -421,8 +435,11 @@ class Estimator:
         with sw("detection"):
             feats = self.detector.detect(job.frame.image_bgr, job.R_ned_body @ self.R_body_cam, scale)
         mapped = None
+        heading_sigma = None
+        if job.heading is not None:
+            heading_sigma = float(np.hypot(np.deg2rad(self.cfg.noise.heading_deg), job.heading.sigma_rad))
         with sw("locating"):
-            located = self.localiser.locate(feats, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior, cand)
+            located = self.localiser.locate(feats, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior, cand, heading_sigma)
         if job.mapping:
             with sw("mapping"):
                 mapped = self.mapper.process(feats, NavSample(job.frame.t_s, job.p_gps_ned_m, job.alt_above_origin_m, job.R_ned_body))
@@ -438,13 +455,16 @@ class Estimator:
             note = _joined(note, self._undo_unverified(self._undo_found_at_s))
             self._undo_found_at_s = None
         common = dict(mapping=job.mapping, located=res, mapped=work.mapped, features=work.features, note=note)
+        if job.mapping and work.mapped is not None:
+            self._heading_from_view(job, work)
         if not isinstance(res, Fix):
-            return FrameResult(t, "none", res.reason, **common)
+            return FrameResult(t, "none", res.reason, **common, heading_offset_deg=self._heading_deg(t))
         if self.filter is None:
             return self._acquire(res, common)
         if job.mapping:
             est = self.filter.estimate_at(res.t_s)
             d_ne = res.p_ned_m[:2] - est.p_ned_m[:2]
+            common["heading_offset_deg"] = self._heading_deg(t)
             d = float(np.linalg.norm(d_ne))
             drag = self.supervisor.visual_check(res.t_s, d_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2],
                                                 np.eye(2) * self.filter.fix_bias_sigma_m**2)
@@ -455,10 +475,38 @@ class Estimator:
             decision = self.filter.update_position(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2], visual=True)
         if decision.accepted:
             self.last_correction_t_s = max(res.t_s, self.last_correction_t_s or -np.inf)
+            if self.heading is not None and job.heading is not None and res.heading_turn_rad is not None:
+                self.heading.observe_turn(res.t_s, res.heading_turn_rad, res.heading_turn_var_rad2, job.heading.offset_rad)
         elif decision.reason.endswith("older than the history"):  # a frame held up longer than the filter remembers
             common["note"] = _joined(common["note"], self._telemetry_fault(
                 f"visual fix refused: {decision.reason} ({self.cfg.fusion.history_s:g} s); frames are late", t))
-        return FrameResult(t, "visual", decision.reason, decision=decision, **common)
+        return FrameResult(t, "visual", decision.reason, decision=decision, **common, heading_offset_deg=self._heading_deg(t))
+
+    def _heading_deg(self, t_s: float) -> float | None:
+        return float(np.rad2deg(self.heading.at(t_s).offset_rad)) if self.heading is not None else None
+
+    def _heading_from_view(self, job: FrameJob, work: FrameWork) -> None:
+        """Give the heading tracker a mapping frame's view: each landmark the frame fed, its ray put on the ground
+        (at the landmark's height) with the telemetry's own heading (the correction in use turned back)."""
+        if self.heading is None or job.heading is None or job.p_gps_ned_m is None:
+            return
+        ids = work.mapped.landmark_ids
+        sel = np.flatnonzero(ids >= 0)
+        if len(sel) < self.cfg.heading.min_shared:
+            return
+        c = np.array([job.p_gps_ned_m[0], job.p_gps_ned_m[1], -job.alt_above_origin_m])
+        rays = self.camera.pixels_to_rays_cam(work.features.uv_px[sel]) @ (job.R_ned_body @ self.R_body_cam).T
+        g = ground_points_ne(c, rays, self.landmarks.p_ned_m[ids[sel], 2].astype(float)) - c[:2]
+        a = job.heading.offset_rad  # back to the telemetry's heading: turn by the correction that was taken out
+        g = c[:2] + np.column_stack([g[:, 0] * np.cos(a) - g[:, 1] * np.sin(a), g[:, 0] * np.sin(a) + g[:, 1] * np.cos(a)])
+        order = np.argsort(ids[sel])
+        # What moves every landmark of a pair alike, across: GPS1's error over the interval and the tilt error
+        # of each frame's attitude at its height; and the heading's own noise from frame to frame.
+        noise = self.cfg.noise
+        tilt_m = job.alt_above_origin_m * np.deg2rad(noise.attitude_deg)
+        shift_sigma_m = float(np.sqrt(self.cfg.heading.gps_relative_m**2 + 2.0 * tilt_m**2))
+        self.heading.observe_view(MotionView(job.frame.t_s, c[:2], ids[sel][order], g[order]), shift_sigma_m,
+                                  0.5 * np.deg2rad(noise.heading_deg) ** 2)
 
     def _undo_unverified(self, t_s: float) -> str | None:
         """GPS1 found dragged at ``t_s``: put the map back as it was when the last agreeing self-check could vouch

@@ -35,7 +35,11 @@ class PositionPrior:
 
 @dataclass(frozen=True)
 class Fix:
-    """A visual position fix of the camera at ``t_s``: ``p_ned_m`` (3,), ``cov_ned_m2`` (3, 3)."""
+    """A visual position fix of the camera at ``t_s``: ``p_ned_m`` (3,), ``cov_ned_m2`` (3, 3).
+
+    ``landmark_ids``: the inliers' landmarks; ``heading_turn_rad``: the turn about the vertical (positive
+    clockwise seen from above) the frame's rays needed to fit them, as the image alone says it, with its variance
+    ``heading_turn_var_rad2`` (None: the image does not tell, the attitude's prior decided it)."""
 
     t_s: float
     p_ned_m: np.ndarray
@@ -43,6 +47,9 @@ class Fix:
     n_inliers: int
     n_correspondences: int
     n_features: int
+    landmark_ids: np.ndarray | None = None
+    heading_turn_rad: float | None = None
+    heading_turn_var_rad2: float | None = None
 
     @property
     def sigma_h_rms_m(self) -> float:
@@ -126,6 +133,7 @@ class _View:
     R_ned_cam: np.ndarray
     alt_above_origin_m: float
     cand_in_cam_axes_m: np.ndarray
+    prior_info: np.ndarray  # (6, 6) what the refinement knows beforehand (height, attitude), 1/m^2 and 1/rad^2
 
 
 @dataclass(frozen=True)
@@ -140,6 +148,8 @@ class _Fit:
     inl: np.ndarray
     attitude_m2: float
     fit_quality: float
+    turn_rad: float = 0.0  # the attitude correction's turn about the vertical, rad
+    turn_var_rad2: float = np.inf
 
 
 @dataclass(frozen=True)
@@ -152,6 +162,8 @@ class _Reading:
     score: float  # its fit quality times ``explained``
     explained: float  # the share of the landmarks it puts well inside the image that have a feature there
     attitude_m2: float  # squared Mahalanobis distance of its attitude correction from the telemetry's
+    turn_rad: float = 0.0  # its attitude correction's turn about the vertical, rad, and that turn's variance
+    turn_var_rad2: float = np.inf
 
 
 def _spread_by_rivals(best: _Reading, readings: list[_Reading], ll: np.ndarray) -> _Reading:
@@ -193,8 +205,9 @@ class Localiser:
         )
 
     def locate(self, features: Features, t_s: float, R_ned_body: np.ndarray, alt_above_origin_m: float, prior: PositionPrior | None,
-               candidate_ids: np.ndarray | None = None) -> LocateResult:
-        """Locate one frame. ``R_ned_body`` and ``alt_above_origin_m`` come from the autopilot (attitude, barometer).
+               candidate_ids: np.ndarray | None = None, heading_sigma_rad: float | None = None) -> LocateResult:
+        """Locate one frame. ``R_ned_body`` and ``alt_above_origin_m`` come from the autopilot (attitude, barometer);
+        ``heading_sigma_rad``: how far its heading may be off (None: ``noise.heading_deg``).
 
         ``candidate_ids``: what :meth:`candidates` gives for this ``alt_above_origin_m`` and ``prior`` on the map as it is,
         when the caller has it already (it asked for the frame's :meth:`detection_scale`); else it is looked up.
@@ -268,7 +281,11 @@ class Localiser:
             return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
         # Unbalanced: half the build time of a frame's features, the same nearest distances.
         feature_tree = cKDTree(features.uv_px, balanced_tree=False, compact_nodes=False)
-        view = _View(features, feature_tree, R_ned_cam, alt_above_origin_m, p_cand_ned_m @ R_ned_cam)
+        prior_info = self._refine_prior_info
+        if heading_sigma_rad is not None:
+            prior_info = prior_info.copy()
+            prior_info[5, 5] = 1.0 / max(heading_sigma_rad, 1e-6) ** 2
+        view = _View(features, feature_tree, R_ned_cam, alt_above_origin_m, p_cand_ned_m @ R_ned_cam, prior_info)
         verdict = self._choose(corr, view, prior, seeds, support, min_inliers, margin)
         if isinstance(verdict, str):
             return NoFix(t_s, verdict, best_support, n_corr, n_feat)
@@ -276,7 +293,13 @@ class Localiser:
         n_inl = int(inl.sum())
         if not tracking and verdict.explained < cfg.min_explained_acquire:
             return NoFix(t_s, f"acquisition: {verdict.explained:.0%} of the landmarks expected in view are seen", n_inl, n_corr, n_feat)
-        return Fix(t_s, p, cov, n_inl, n_corr, n_feat)
+        # The turn as the image alone says it: the posterior's information less the prior's (scalar marginals).
+        turn = turn_var = None
+        info_image = 1.0 / verdict.turn_var_rad2 - prior_info[5, 5] if verdict.turn_var_rad2 > 0 else 0.0
+        if info_image > 0.1 * prior_info[5, 5]:
+            turn_var = 1.0 / info_image
+            turn = verdict.turn_rad / verdict.turn_var_rad2 * turn_var
+        return Fix(t_s, p, cov, n_inl, n_corr, n_feat, corr.lm_id[inl], turn, turn_var)
 
     # -- steps -------------------------------------------------------------------------------------------------
 
@@ -349,9 +372,10 @@ class Localiser:
         """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
         dist2 = cdist(corr.hyp, corr.hyp[seed][None], "sqeuclidean")[:, 0]  # as _consensus measures: the same members
         inl = self._one_per_feature(dist2 <= np.square(corr.tau), corr.feat_i, dist2)
-        fit = self._refine(np.array([*corr.hyp[seed], -view.alt_above_origin_m]), corr, inl, view.alt_above_origin_m, 1.0 / view.features.scale)
+        fit = self._refine(np.array([*corr.hyp[seed], -view.alt_above_origin_m]), corr, inl, view.alt_above_origin_m, 1.0 / view.features.scale,
+                           view.prior_info)
         explained = self._explained_share(fit.p, view)
-        return _Reading(fit.p, fit.cov, fit.inl, fit.fit_quality * explained, explained, fit.attitude_m2)
+        return _Reading(fit.p, fit.cov, fit.inl, fit.fit_quality * explained, explained, fit.attitude_m2, fit.turn_rad, fit.turn_var_rad2)
 
     def detection_scale(self, alt_above_origin_m: float, prior: PositionPrior | None, candidate_ids: np.ndarray | None = None) -> float:
         """The image scale (at most 1) at which to detect a frame so that its descriptors see the landmarks in
@@ -498,7 +522,8 @@ class Localiser:
         keep[order[first]] = True
         return keep
 
-    def _refine(self, p0: np.ndarray, corr: _Correspondences, inl: np.ndarray, alt_above_origin_m: float, pixel_size: float = 1.0) -> _Fit:
+    def _refine(self, p0: np.ndarray, corr: _Correspondences, inl: np.ndarray, alt_above_origin_m: float, pixel_size: float = 1.0,
+                prior_info: np.ndarray | None = None) -> _Fit:
         """Weighted least squares over the inliers for the camera position and a small attitude correction.
 
         Unknowns: position (3) and a rotation ``dtheta`` (3, NED) of the telemetry attitude, which turns each ray
@@ -527,11 +552,12 @@ class Localiser:
         d_dot_L = np.einsum("ki,ki->k", d, L)
         PL = L - d_dot_L[:, None] * d  # P_k L_k, P_k = I - d_k d_k^T
         d_cross_L = np.cross(d, L)  # d_k x L_k
-        prior_info = self._refine_prior_info
+        prior_info = self._refine_prior_info if prior_info is None else prior_info
         eye3 = np.eye(3)
         p = np.asarray(p0, float)
         dtheta = np.zeros(3)
         cov = np.full((3, 3), np.nan)
+        turn_var = np.inf
         for _ in range(3):
             n_inl = int(kept.sum())
             if n_inl < 2:
@@ -561,10 +587,11 @@ class Localiser:
             err_px = np.sqrt(resid2) / np.maximum(t, 1e-6) * f
             chi2 = float(w @ resid2)
             dof = max(2 * n_inl - 3, 1)
-            cov = np.linalg.inv(A)[:3, :3] * max(1.0, chi2 / dof)
+            cov_all = np.linalg.inv(A) * max(1.0, chi2 / dof)
+            cov, turn_var = cov_all[:3, :3], float(cov_all[5, 5])
             kept &= err_px <= cfg.inlier_px * pixel_size
         attitude_m2 = float(dtheta @ prior_info[3:, 3:] @ dtheta)
         fit_quality = float(np.sum(np.clip(1.0 - np.square(err_px[kept] / (cfg.inlier_px * pixel_size)), 0.0, 1.0)))
         inl = np.zeros(len(inl), bool)
         inl[idx] = kept
-        return _Fit(p, cov, inl, attitude_m2, fit_quality)
+        return _Fit(p, cov, inl, attitude_m2, fit_quality, float(dtheta[2]), turn_var)

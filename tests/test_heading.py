@@ -1,0 +1,151 @@
+"""The autopilot's heading error: what a map geotagged with it does to a fix, and how it is solved.
+
+Ground points with unique descriptors are seen by a camera flying north at 40 m; the mapper geotags them with the
+telemetry's heading, which is off by a known error. The real mapper and localiser are used, so that what
+``auxgps.core.heading`` assumes is checked against what they do, not against itself.
+"""
+
+import numpy as np
+
+from auxgps.config import HeadingConfig, PipelineConfig
+from auxgps.core.camera import camera_from_config
+from auxgps.core.features import Features
+from auxgps.core.geometry import R_body_cam_from_mount, R_ned_body_from_euler
+from auxgps.core.heading import HeadingTracker, MotionView, ground_points_ne, heading_from_motion
+from auxgps.core.landmarks import LandmarkMap
+from auxgps.core.localise import Fix, Localiser, PositionPrior
+from auxgps.core.mapping import Mapper
+from auxgps.core.nav import NavSample
+
+ALT_M = 40.0
+
+
+class Scene:
+    """Random ground points, and the features a camera at ``c_ne`` with heading ``yaw`` sees of them."""
+
+    def __init__(self, pipeline: PipelineConfig, seed: int = 0) -> None:
+        rng = np.random.default_rng(seed)
+        self.cfg = pipeline
+        self.camera = camera_from_config(pipeline.camera)
+        m = pipeline.mount
+        self.R_body_cam = R_body_cam_from_mount(*np.deg2rad([m.roll_deg, m.pitch_deg, m.yaw_deg]))
+        n = 20000
+        self.points = np.column_stack([rng.uniform(-80, 280, n), rng.uniform(-120, 120, n), np.zeros(n)])
+        self.descriptors = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+        self.rng = rng
+
+    def features(self, c_ne: np.ndarray, yaw_rad: float) -> Features:
+        from auxgps.core.camera import CameraPose
+
+        pose = CameraPose(np.array([c_ne[0], c_ne[1], -ALT_M]), R_ned_body_from_euler(0.0, 0.0, yaw_rad) @ self.R_body_cam)
+        uv, front = pose.project(self.camera, self.points)
+        inside = front & self.camera.in_image(np.nan_to_num(uv, nan=-1e6), -20.0)
+        keep = np.flatnonzero(inside)
+        keep = keep[self.rng.permutation(len(keep))[:600]]
+        uv = uv[keep] + self.rng.normal(0, 0.3, (len(keep), 2))
+        return Features(uv, self.descriptors[keep], np.zeros(len(keep), int))
+
+
+def _views_along_north(scene, pipeline, b_rad, k_from, k_to, spacing_m=2.0):
+    """The mapper's views of a flight north at 40 m whose telemetry heading is ``b_rad`` off (true heading 0)."""
+    lm = LandmarkMap()
+    mapper = Mapper(pipeline, scene.camera, scene.R_body_cam, lm)
+    R_told = R_ned_body_from_euler(0.0, 0.0, b_rad)
+    views = []
+    for k in range(k_from, k_to):
+        c = np.array([spacing_m * k, 0.0])
+        feats = scene.features(c, 0.0)
+        res = mapper.process(feats, NavSample(0.25 * k, np.array([c[0], c[1], -ALT_M]), ALT_M, R_told))
+        sel = np.flatnonzero(res.landmark_ids >= 0)
+        cam = np.array([c[0], c[1], -ALT_M])
+        rays = scene.camera.pixels_to_rays_cam(feats.uv_px[sel]) @ (R_told @ scene.R_body_cam).T
+        g = ground_points_ne(cam, rays, lm.p_ned_m[res.landmark_ids[sel], 2].astype(float))
+        order = np.argsort(res.landmark_ids[sel])
+        views.append(MotionView(0.25 * k, c, res.landmark_ids[sel][order], g[order]))
+    return lm, views
+
+
+def test_the_same_landmarks_seen_from_two_places_give_the_heading_error(pipeline):
+    """Two mapping frames 16 m apart: their ground points of the same landmarks are b * B^perp apart, and the
+    median of that over the baseline is the heading error."""
+    scene = Scene(pipeline)
+    for b_deg in (1.5, -0.8):
+        _, views = _views_along_north(scene, pipeline, np.deg2rad(b_deg), 0, 9)
+        m = heading_from_motion(views[8], views[0], shift_sigma_m=0.02, min_shared=15)
+        assert m is not None and m.n > 100 and abs(m.baseline_m - 16.0) < 1e-9
+        assert abs(np.rad2deg(m.offset_rad) - b_deg) < 3 * np.rad2deg(np.sqrt(m.var_rad2)) + 0.02
+        assert np.sqrt(m.var_rad2) < np.deg2rad(0.2)
+
+
+def test_a_map_made_with_a_heading_error_is_right_on_its_track_and_off_beside_it(pipeline):
+    """What the error does: the map is turned about the way out, so a frame on that track is located nearly right
+    (the map cannot show the error against itself), one 35 m to the side is off by about the turn times 35 m."""
+    scene = Scene(pipeline, seed=2)
+    b = np.deg2rad(1.5)
+    lm, _ = _views_along_north(scene, pipeline, b, 0, 40)
+    localiser = Localiser(pipeline, scene.camera, scene.R_body_cam, lm)
+    R_told = R_ned_body_from_euler(0.0, 0.0, b)
+    aside = np.array([60.0, 35.0])  # a return leg 35 m to the side of the way out
+    fix = localiser.locate(scene.features(aside, 0.0), 11.0, R_told, ALT_M, PositionPrior(np.array([*aside, -ALT_M]), 0.5))
+    assert isinstance(fix, Fix), fix
+    off_aside = np.linalg.norm(fix.p_ned_m[:2] - aside)
+    assert off_aside > 0.5 * b * 35.0  # decimetres: the map is turned about the way out
+    on_track = np.array([60.0, 0.0])
+    fix = localiser.locate(scene.features(on_track, 0.0), 11.0, R_told, ALT_M, PositionPrior(np.array([*on_track, -ALT_M]), 0.5))
+    assert np.linalg.norm(fix.p_ned_m[:2] - on_track) < 0.3 * off_aside
+
+
+def test_positioning_on_a_true_map_measures_the_heading_error_as_a_turn(pipeline):
+    scene = Scene(pipeline, seed=1)
+    lm = LandmarkMap()
+    mapper = Mapper(pipeline, scene.camera, scene.R_body_cam, lm)
+    for k in range(40):
+        c = np.array([2.0 * k, 0.0])
+        mapper.process(scene.features(c, 0.0), NavSample(0.25 * k, np.array([c[0], c[1], -ALT_M]), ALT_M, np.eye(3)))
+    localiser = Localiser(pipeline, scene.camera, scene.R_body_cam, lm)
+    b = np.deg2rad(1.2)
+    c_now = np.array([60.0, 0.0])
+    fix = localiser.locate(scene.features(c_now, 0.0), 11.0, R_ned_body_from_euler(0.0, 0.0, b), ALT_M,
+                           PositionPrior(np.array([c_now[0], c_now[1], -ALT_M]), 0.3), heading_sigma_rad=np.deg2rad(2.0))
+    assert fix.heading_turn_rad is not None
+    assert abs(fix.heading_turn_rad + b) < 3.0 * np.sqrt(fix.heading_turn_var_rad2) + np.deg2rad(0.05)
+    assert np.linalg.norm(fix.p_ned_m[:2] - c_now) < 0.05
+
+
+def test_tracker_follows_a_wandering_error_and_refuses_a_jump():
+    cfg = HeadingConfig(sigma_deg=2.0, tau_s=120.0, reset_after=3)
+    tr = HeadingTracker(cfg)
+    rng = np.random.default_rng(3)
+    b_true = np.deg2rad(1.5)
+    for k in range(200):
+        t = 0.5 * k
+        b_true += np.deg2rad(0.01) * rng.standard_normal()
+        tr.observe(t, b_true + np.deg2rad(0.4) * rng.standard_normal(), np.deg2rad(0.4) ** 2)
+    est = tr.at(100.0)
+    assert abs(est.offset_rad - b_true) < 3 * est.sigma_rad
+    assert est.sigma_rad < np.deg2rad(0.35)  # down from 2 deg (steady state: (q R dt)^(1/4) = 0.27 deg)
+    before, n_refused = tr.at(100.5).offset_rad, tr.n_refused
+    assert not tr.observe(100.5, b_true + np.deg2rad(5.0), np.deg2rad(0.4) ** 2)  # 5 deg off: refused, kept
+    assert tr.at(100.5).offset_rad == before and tr.n_refused == n_refused + 1
+    # A positioning frame turned by x against the map, located with the heading less u: the error is u - x.
+    assert tr.observe_turn(101.0, -0.001, np.deg2rad(0.1) ** 2, before) and tr.at(101.0).offset_rad > before
+    # Refused reset_after times in a row: the error has jumped, and the estimate reopens to follow it.
+    for k in range(3):
+        tr.observe(102.0 + k, b_true + np.deg2rad(5.0), np.deg2rad(0.4) ** 2)
+    assert tr.at(105.0).sigma_rad > 0.9 * np.deg2rad(cfg.sigma_deg)
+    assert tr.observe(105.5, b_true + np.deg2rad(5.0), np.deg2rad(0.4) ** 2)
+    # Without evidence, the uncertainty grows back towards the prior.
+    assert tr.at(2000.0).sigma_rad > 0.95 * np.deg2rad(cfg.sigma_deg)
+
+
+def test_tracker_pairs_each_view_with_one_far_enough_back(pipeline):
+    scene = Scene(pipeline, seed=4)
+    b = np.deg2rad(-1.2)
+    _, views = _views_along_north(scene, pipeline, b, 0, 30)
+    tr = HeadingTracker(HeadingConfig())
+    found = [tr.observe_view(v, shift_sigma_m=0.05) for v in views]
+    got = [m for m in found if m is not None]
+    assert found[0] is None and len(got) > 15  # the first has none before it; pairs need 8 m
+    assert all(m.baseline_m >= HeadingConfig().min_baseline_m for m in got)
+    est = tr.at(views[-1].t_s)
+    assert abs(est.offset_rad - b) < max(3 * est.sigma_rad, np.deg2rad(0.05))
