@@ -153,6 +153,9 @@ class FusionConfig:
     # over-confident there (NEES 3.1) and a self-check of clean GPS1 call it dragged.
     fix_bias_per_height: NonNegative = 0.006
     gate_chi2: Positive = 9.21  # 99% for the 2 degrees of freedom of a horizontal fix
+    # A frame found ambiguous (two readings some distance apart) casts doubt on the fixes of the ground around it
+    # for this long: theirs is widened by that distance (the ground that looks alike is still in view).
+    ambiguity_memory_s: NonNegative = 2.0
     history_s: Annotated[float, Field(gt=0, le=5)] = 0.5
     reinit_count: Annotated[int, Field(ge=2)] = 5
     reinit_window_s: Positive = 3.0

@@ -195,3 +195,35 @@ def test_a_frozen_camera_gives_no_fix_and_is_said_once(flight):
     assert len(notes) == 2 and notes[0].startswith("camera fault: frozen camera") and notes[1].startswith("camera fault over"), notes
     sigma = {round(o.t_s, 1): o.estimate.sigma_h_worst_m for (kind, _), o in zip(frozen, said) if kind == "output" and o.estimate}
     assert sigma[20.9] > 2 * sigma[18.0]
+
+
+def test_an_ambiguous_frame_widens_the_fixes_of_the_frames_after_it():
+    """A frame whose two readings lay 0.6 m apart casts doubt on the next fixes of the same ground: a fix 0.3 m off
+    moves the filter less right after it than it does without one, and the doubt lapses after
+    ``fusion.ambiguity_memory_s``."""
+    from auxgps.core.estimator import FrameJob, FrameWork
+    from auxgps.core.events import Gps1, Position
+    from auxgps.core.features import Features
+    from auxgps.core.geometry import LocalFrame
+    from auxgps.core.localise import Fix, NoFix
+
+    frame = LocalFrame(47.0, 8.0, 400.0)
+
+    def moved_by_fix(ambiguous_at_s):
+        est = Estimator(PipelineConfig(), frame=frame)
+        est.feed(Position(0.0, np.nan, np.nan, np.nan, 10.0))
+        lat, lon, alt = frame.to_geodetic(np.array([0.0, 0.0, -10.0]))
+        est.feed(Gps1(0.1, 3, 12, float(lat), float(lon), float(alt), 0.1))
+        none = Features(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, int))
+        job = lambda t: FrameJob(Frame(t, np.zeros((2, 2, 3), np.uint8)), np.eye(3), 10.0, None, False, None)  # noqa: E731
+        if ambiguous_at_s is not None:
+            amb = NoFix(ambiguous_at_s, "ambiguous: a reading 0.60 m away", rivals_apart_m=0.6)
+            est.finish_frame(FrameWork(job(ambiguous_at_s), none, None, amb))
+        fix = Fix(0.15, np.array([0.3, 0.0, -10.0]), np.eye(3) * 0.05**2, 20, 40, 100)
+        est.finish_frame(FrameWork(job(0.15), none, None, fix))
+        return float(est.filter.estimate_at(0.15).p_ned_m[0])
+
+    plain, doubted, lapsed = moved_by_fix(None), moved_by_fix(0.12), moved_by_fix(0.15 - 2.5)
+    assert plain > 0.05  # the fix moves the filter
+    assert doubted < 0.2 * plain  # right after an ambiguous frame, far less
+    assert lapsed == plain  # 2.5 s later, the doubt has lapsed (2 s)

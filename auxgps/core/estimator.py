@@ -215,6 +215,7 @@ class Estimator:
         self._attitude_lost = False
         self._pending_note: str | None = None  # said with the next finished frame
         self._frame_fault: str | None = None  # the camera fault in force (its kind), for the events log
+        self._ambiguous: tuple[float, float] | None = None  # (when, how far apart) the last ambiguous frame's rivals
 
     # -- telemetry -----------------------------------------------------------------------------------------
 
@@ -458,6 +459,8 @@ class Estimator:
         if job.mapping and work.mapped is not None:
             self._heading_from_view(job, work)
         if not isinstance(res, Fix):
+            if res.rivals_apart_m is not None and not job.mapping:
+                self._ambiguous = (t, res.rivals_apart_m)
             return FrameResult(t, "none", res.reason, **common, heading_offset_deg=self._heading_deg(t))
         if self.filter is None:
             return self._acquire(res, common)
@@ -471,8 +474,12 @@ class Estimator:
             if drag:
                 common["note"] = _joined(common["note"], drag, self._undo_unverified(res.t_s))
             return FrameResult(t, "self-check", f"{d:.3f} m", self_check_m=d, **common)
+        cov_ne = res.cov_ned_m2[:2, :2]
+        amb = self._ambiguous
+        if amb is not None and 0.0 <= t - amb[0] <= self.cfg.fusion.ambiguity_memory_s:
+            cov_ne = cov_ne + np.eye(2) * amb[1] ** 2  # a neighbour frame could not tell two readings this far apart
         with self.stopwatch("filtering"):
-            decision = self.filter.update_position(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2], visual=True)
+            decision = self.filter.update_position(res.t_s, res.p_ned_m[:2], cov_ne, visual=True)
         if decision.accepted:
             self.last_correction_t_s = max(res.t_s, self.last_correction_t_s or -np.inf)
             if self.heading is not None and job.heading is not None and res.heading_turn_rad is not None:

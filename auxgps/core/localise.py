@@ -60,13 +60,15 @@ class Fix:
 
 @dataclass(frozen=True)
 class NoFix:
-    """No position from this frame, and why."""
+    """No position from this frame, and why. ``rivals_apart_m``: an ambiguous frame's two readings were this far
+    apart (None: not ambiguous)."""
 
     t_s: float
     reason: str
     n_inliers: int = 0
     n_correspondences: int = 0
     n_features: int = 0
+    rivals_apart_m: float | None = None
 
 
 LocateResult = Fix | NoFix
@@ -287,6 +289,8 @@ class Localiser:
             prior_info[5, 5] = 1.0 / max(heading_sigma_rad, 1e-6) ** 2
         view = _View(features, feature_tree, R_ned_cam, alt_above_origin_m, p_cand_ned_m @ R_ned_cam, prior_info)
         verdict = self._choose(corr, view, prior, seeds, support, min_inliers, margin)
+        if isinstance(verdict, tuple):  # ambiguous: the reason and how far apart the rivals are
+            return NoFix(t_s, verdict[0], best_support, n_corr, n_feat, rivals_apart_m=verdict[1])
         if isinstance(verdict, str):
             return NoFix(t_s, verdict, best_support, n_corr, n_feat)
         p, cov, inl = verdict.p, verdict.cov, verdict.inl
@@ -304,7 +308,8 @@ class Localiser:
     # -- steps -------------------------------------------------------------------------------------------------
 
     def _choose(self, corr: _Correspondences, view: _View, prior, seeds, support, min_inliers: int, margin: float):
-        """The most probable reading of the frame, or a reason (str) why the frame is ambiguous.
+        """The most probable reading of the frame, or a reason (str) why there is none; an ambiguous frame's reason
+        comes with how far apart its rivals are (a tuple).
 
         The best-supported hypotheses that are distinct (more than their agreement radius apart, and from the
         refined positions of the readings taken) are refined into readings, up to ``max_readings``. Each reading
@@ -364,8 +369,9 @@ class Localiser:
         for k in order[1:]:
             if n_inl[k] < min_inliers:
                 continue
-            if np.linalg.norm(readings[k].p[:2] - best.p[:2]) > radius and ll[k] >= ll[order[0]] - margin:
-                return f"ambiguous: a reading {np.linalg.norm(readings[k].p[:2] - best.p[:2]):.2f} m away is within {ll[order[0]] - ll[k]:.1f} of the best"
+            apart_m = float(np.linalg.norm(readings[k].p[:2] - best.p[:2]))
+            if apart_m > radius and ll[k] >= ll[order[0]] - margin:
+                return f"ambiguous: a reading {apart_m:.2f} m away is within {ll[order[0]] - ll[k]:.1f} of the best", apart_m
         return _spread_by_rivals(best, readings, ll)
 
     def _reading(self, corr: _Correspondences, view: _View, seed: int) -> _Reading:
