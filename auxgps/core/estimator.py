@@ -116,7 +116,6 @@ class FrameResult:
     mapped: MappingResult | None = None
     features: Features | None = None
     note: str | None = None  # a line for the events log (a camera fault began or ended, the frame rate fell)
-    heading_offset_deg: float | None = None  # the autopilot's heading error as solved after this frame
 
 
 @dataclass(frozen=True)
@@ -461,13 +460,12 @@ class Estimator:
         if not isinstance(res, Fix):
             if res.rivals_apart_m is not None and not job.mapping:
                 self._ambiguous = (t, res.rivals_apart_m)
-            return FrameResult(t, "none", res.reason, **common, heading_offset_deg=self._heading_deg(t))
+            return FrameResult(t, "none", res.reason, **common)
         if self.filter is None:
             return self._acquire(res, common)
         if job.mapping:
             est = self.filter.estimate_at(res.t_s)
             d_ne = res.p_ned_m[:2] - est.p_ned_m[:2]
-            common["heading_offset_deg"] = self._heading_deg(t)
             d = float(np.linalg.norm(d_ne))
             drag = self.supervisor.visual_check(res.t_s, d_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2],
                                                 np.eye(2) * self.filter.fix_bias_sigma_m**2)
@@ -487,10 +485,7 @@ class Estimator:
         elif decision.reason.endswith("older than the history"):  # a frame held up longer than the filter remembers
             common["note"] = _joined(common["note"], self._telemetry_fault(
                 f"visual fix refused: {decision.reason} ({self.cfg.fusion.history_s:g} s); frames are late", t))
-        return FrameResult(t, "visual", decision.reason, decision=decision, **common, heading_offset_deg=self._heading_deg(t))
-
-    def _heading_deg(self, t_s: float) -> float | None:
-        return float(np.rad2deg(self.heading.at(t_s).offset_rad)) if self.heading is not None else None
+        return FrameResult(t, "visual", decision.reason, decision=decision, **common)
 
     def _heading_from_view(self, job: FrameJob, work: FrameWork) -> None:
         """Give the heading tracker a mapping frame's view: each landmark the frame fed, its ray put on the ground

@@ -37,7 +37,7 @@ class PositionPrior:
 class Fix:
     """A visual position fix of the camera at ``t_s``: ``p_ned_m`` (3,), ``cov_ned_m2`` (3, 3).
 
-    ``landmark_ids``: the inliers' landmarks; ``heading_turn_rad``: the turn about the vertical (positive
+    ``heading_turn_rad``: the turn about the vertical (positive
     clockwise seen from above) the frame's rays needed to fit them, as the image alone says it, with its variance
     ``heading_turn_var_rad2`` (None: the image does not tell, the attitude's prior decided it)."""
 
@@ -47,7 +47,6 @@ class Fix:
     n_inliers: int
     n_correspondences: int
     n_features: int
-    landmark_ids: np.ndarray | None = None
     heading_turn_rad: float | None = None
     heading_turn_var_rad2: float | None = None
 
@@ -303,7 +302,7 @@ class Localiser:
         if info_image > 0.1 * prior_info[5, 5]:
             turn_var = 1.0 / info_image
             turn = verdict.turn_rad / verdict.turn_var_rad2 * turn_var
-        return Fix(t_s, p, cov, n_inl, n_corr, n_feat, corr.lm_id[inl], turn, turn_var)
+        return Fix(t_s, p, cov, n_inl, n_corr, n_feat, turn, turn_var)
 
     # -- steps -------------------------------------------------------------------------------------------------
 
