@@ -76,6 +76,8 @@ def _eval(args) -> int:
     from auxgps.sim.faults import load_fault_plan
     from auxgps.sim.flight import load_sim_config
 
+    if args.map and not args.mission:
+        raise ConfigError("--map goes with --mission: the estimator of a mission starts from these maps")
     if bool(args.mission) != (args.gps_lost_at_waypoint is not None):
         raise ConfigError("--mission and --gps-lost-at-waypoint go together: the mission, and the item GPS1 is lost at")
     sim = load_sim_config(args.sim_config)
@@ -92,7 +94,7 @@ def _eval(args) -> int:
         sim=sim,
         workers=args.workers,
         progress=not args.quiet,
-        mission=MissionRun(args.mission, args.speed_m_s, args.gps_lost_at_waypoint) if args.mission else None,
+        mission=MissionRun(args.mission, args.speed_m_s, args.gps_lost_at_waypoint, tuple(args.map or ())) if args.mission else None,
         ray=args.ray,
     )
     print(summary_table(summary))
@@ -353,10 +355,14 @@ def _photo_settings(args):
 
 
 def _map_build(args) -> int:
+    if args.orthophoto:
+        return _map_build_orthophoto(args)
     from auxgps.io.map_file import save_photo_map
     from auxgps.io.photos import list_photos
     from auxgps.photo_workflow import build_map_from_photos
 
+    if not args.images:
+        raise ConfigError("auxgps map build: --images DIR (photos) or --orthophoto ORTHO.tif is needed")
     cam_cfg, cfg = _photo_settings(args)
     files = list_photos(args.images, args.only)
     print(f"auxgps map build: {len(files)} photos from {args.images}")
@@ -371,6 +377,50 @@ def _map_build(args) -> int:
           f"map placement one sigma {pm.georef_sigma_h_m:.2f} m")
     for cid, cam in pm.cameras.items():
         print(f"camera {cid}: focal {cam.focal_px:.1f} px, k1 {cam.dist[0]:+.4f}, k2 {cam.dist[1]:+.4f}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _map_build_orthophoto(args) -> int:
+    from auxgps.core.landmarks import LandmarkMap
+    from auxgps.core.prior_map import FLIGHT
+    from auxgps.io.map_file import save_map, save_photo_map
+    from auxgps.ortho_map import build_prior_map
+    from auxgps.photo.types import PhotoMap
+
+    if args.images:
+        raise ConfigError("auxgps map build: --images and --orthophoto are two ways to build a map: give one")
+    pipeline = photo_cfg = None
+    if args.descriptor == "orb":
+        pipeline = load_pipeline_config(args.pipeline)
+    else:
+        _, photo_cfg = _photo_settings(args)
+    print(f"auxgps map build: {args.descriptor} landmarks from the orthophoto {args.orthophoto}")
+    report = build_prior_map(args.orthophoto, descriptor=args.descriptor, pipeline=pipeline, photo_cfg=photo_cfg,
+                             gsd_m=args.gsd_m, dsm_path=args.dsm, ground_alt_amsl_m=args.ground_alt_m,
+                             georef_sigma_m=args.georef_sigma_m, tile_px=args.tile_px,
+                             progress=None if args.quiet else lambda msg: print(f"  {msg}", flush=True))
+    for msg in report.messages:
+        print(f"  note: {msg}")
+    c, f = report.columns, report.frame
+    if report.descriptor == "orb":
+        lm = LandmarkMap.from_columns({**c, "source": np.ones(report.count, np.uint8)}, sources=[FLIGHT, report.source])
+        save_map(args.out, lm, f, prior=report.prior)
+        lo, hi = report.prior["gsd_m"] * report.prior["focal_px"] * np.array(
+            [pipeline.positioning.min_detection_scale, pipeline.detector.scale_factor])
+        use = f"for auxgps run; frames are matched at this scale from {lo:.0f} m to {hi:.0f} m above ground (camera focal {report.prior['focal_px']:.0f} px)"
+    else:
+        from auxgps.core.landmarks import unpack_sym
+
+        pm = PhotoMap(p_ned_m=c["p_ned_m"].astype(float), info_ned=unpack_sym(c["info_packed"].astype(float)),
+                      descriptors=c["descriptors"], n_views=np.ones(report.count, int), cameras={},
+                      georef_sigma_h_m=report.source.georef_sigma_h_m, photos=(),
+                      source=np.zeros(report.count, np.uint8), sources=(report.source,))
+        save_photo_map(args.out, pm, f, prior=report.prior)
+        use = "for auxgps locate"
+    print(f"map: {report.count} landmarks from {report.tiles} tiles at {report.gsd_m:.3f} m per pixel (the file's "
+          f"{report.prior['file_gsd_m']:.3f} m), {use}; heights: {report.heights}; placement one sigma "
+          f"{report.source.georef_sigma_h_m:.2f} m; origin {f.lat_deg:.7f} {f.lon_deg:.7f} {f.alt_amsl_m:.1f} m")
     print(f"wrote {args.out}")
     return 0
 
@@ -400,12 +450,12 @@ def _ortho_build(args) -> int:
 
 
 def _locate(args) -> int:
-    from auxgps.io.map_file import load_photo_map
+    from auxgps.io.map_file import load_photo_maps
     from auxgps.io.photos import list_photos
     from auxgps.photo_workflow import locate_photos
 
     cam_cfg, cfg = _photo_settings(args)
-    photo_map, frame = load_photo_map(args.map)
+    photo_map, frame = load_photo_maps(args.map)
     files = list_photos(args.images, args.only)
 
     def show(row):
@@ -413,6 +463,8 @@ def _locate(args) -> int:
             err = "-" if row["error_m"] is None else f"{row['error_m']:.2f} m"
             line = (f"{row['file']}: {row['lat_deg']:.7f} {row['lon_deg']:.7f}  accuracy {row['accuracy_m']:.2f} m  "
                     f"inliers {row['inliers']}  distance to its GPS {err}")
+            if row.get("map"):
+                line += f"  on {row['map']}"
         else:
             line = f"{row['file']}: {row['message']}"
         for note in row["notes"]:
@@ -519,6 +571,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      "mapping with GPS1, GPS1 lost at --gps-lost-at-waypoint, the rest scored; every "
                                      "height at --altitude")
     p.add_argument("--speed-m-s", type=_positive(float), default=5.0, help="with --mission: its speed, m/s (default 5)")
+    p.add_argument("--map", action="append", help="with --mission: start from this map (a prior map from auxgps map build "
+                                                  "--orthophoto, or a flight's); repeatable")
     p.add_argument("--gps-lost-at-waypoint", type=_positive(int), help="with --mission: the item (its number in the file, "
                                                                        "home being 0) on reaching which GPS1 is lost")
     add_eval_options(p)
@@ -531,7 +585,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="at start, give up after this many seconds without a connection (default 15)")
     p.add_argument("--camera", required=True, help="sim:WORLD.yaml (rendered at the simulator's truth), a video file, or a device index")
     p.add_argument("--config", help="pipeline config YAML")
-    p.add_argument("--map", help="load this map file at start (it must exist and be readable)")
+    p.add_argument("--map", action="append",
+                   help="load this map file at start (it must exist and be readable): a flight's, or a prior map from "
+                        "auxgps map build --orthophoto; repeat to load several at once")
     p.add_argument("--save-map", help="save the map here, atomically: while flying (see --checkpoint), at every mode change and at the end")
     p.add_argument("--checkpoint", type=_non_negative(float), default=10.0, metavar="S",
                    help="with --save-map, write the map every S seconds while flying (default 10; 0: at mode changes and the end only)")
@@ -577,8 +633,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=_bench)
 
-    def add_photo_options(p):
-        p.add_argument("--images", required=True, help="folder of photos (JPEG, PNG, TIFF)")
+    def add_photo_options(p, images_required=True):
+        p.add_argument("--images", required=images_required, help="folder of photos (JPEG, PNG, TIFF)")
         p.add_argument("--only", action="append", help="only photos whose file name matches this glob (repeatable, or comma-separated)")
         p.add_argument("--camera", help="camera file (config/cameras/*.yaml); default: from EXIF, refined by map building")
         p.add_argument("--config", help="photo workflow settings YAML (default: built-in defaults)")
@@ -587,9 +643,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("map", help="landmark maps from photos")
     map_sub = p.add_subparsers(dest="map_command", required=True)
-    p = map_sub.add_parser("build", help="build a landmark map from a folder of geotagged photos")
-    add_photo_options(p)
+    p = map_sub.add_parser("build", help="build a landmark map from a folder of geotagged photos, or from an orthophoto")
+    add_photo_options(p, images_required=False)
     p.add_argument("--out", required=True, help="map file to write (.npz)")
+    p.add_argument("--orthophoto", metavar="ORTHO.tif", help="a prior map from this georeferenced orthophoto (any CRS), not from photos")
+    p.add_argument("--descriptor", choices=("orb", "sift"), default="orb",
+                   help="with --orthophoto: orb for auxgps run, sift for auxgps locate (default orb)")
+    p.add_argument("--pipeline", metavar="PIPELINE.yaml",
+                   help="with --orthophoto and orb: the flight's pipeline settings (its camera and detector), as auxgps run --config takes them")
+    p.add_argument("--dsm", metavar="DSM.tif", help="with --orthophoto: heights from this height model (m above mean sea level)")
+    p.add_argument("--ground-alt-m", type=float, help="with --orthophoto and no --dsm: the ground's height, m above mean sea level")
+    p.add_argument("--gsd-m", type=_positive(float), help="with --orthophoto: build at this many metres a pixel (default: the file's)")
+    p.add_argument("--georef-sigma-m", type=_non_negative(float),
+                   help="with --orthophoto: its placement error, one sigma, m (default: its own tag, else 2)")
+    p.add_argument("--tile-px", type=_positive(int), help="with --orthophoto: detect in tiles of this side, px (default: half a frame for orb)")
     p.set_defaults(func=_map_build)
 
     p = sub.add_parser("ortho", help="orthophotos from photos")
@@ -601,7 +668,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_ortho_build)
 
     p = sub.add_parser("locate", help="locate photos from a map alone; their own GPS only scores the answer")
-    p.add_argument("--map", required=True, help="map file from auxgps map build")
+    p.add_argument("--map", required=True, action="append",
+                   help="map file from auxgps map build (from photos, or --orthophoto with --descriptor sift); repeat to use several at once")
     add_photo_options(p)
     p.add_argument("--json", help="write per-photo results and a summary as JSON to this file")
     p.add_argument("--ignore-metadata", action="store_true", help="use no attitude or height metadata of the photos")

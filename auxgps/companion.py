@@ -13,6 +13,7 @@ import logging
 import os
 import threading
 import time
+from pathlib import Path
 from dataclasses import asdict, dataclass
 
 from auxgps.config import PipelineConfig
@@ -21,7 +22,7 @@ from auxgps.errors import LinkError
 from auxgps.io.camera import open_camera
 from auxgps.io.flight_log import FlightLog
 from auxgps.io.link import Decoder, MavLink, Truth
-from auxgps.io.map_file import load_map, save_map
+from auxgps.io.map_file import load_maps, save_map
 from auxgps.io.recording import Recorder
 
 log = logging.getLogger(__name__)
@@ -92,7 +93,7 @@ class PrimaryTakeover:
 class RunOptions:
     connect: str
     camera: str
-    map_in: str | None = None
+    map_in: list[str] | None = None  # maps to start from: a flight's and prior maps (orthophotos'), merged into one
     map_out: str | None = None
     log_dir: str = "out/run"
     duration_s: float | None = None
@@ -112,14 +113,18 @@ class Companion:
     def __init__(self, cfg: PipelineConfig, opts: RunOptions) -> None:
         self.cfg, self.opts = cfg, opts
         landmarks = frame = None
+        start_map = opts.map_in[0] if opts.map_in else None
         if opts.map_in:
-            landmarks, frame = load_map(opts.map_in)  # MapError: one clear line from the CLI
+            landmarks, frame = load_maps(opts.map_in)  # MapError: one clear line from the CLI
+            if len(opts.map_in) > 1 and opts.record_dir:  # the recording keeps the merged map it started from
+                start_map = str(Path(opts.record_dir) / "start_map.npz")
+                save_map(start_map, landmarks, frame)
         self.estimator = Estimator(cfg, EstimatorOptions(gps_delay_s=opts.gps_delay_s, gps1_lag_s=opts.gps1_lag_s),
                                    landmarks=landmarks, frame=frame)
         self.log = FlightLog(opts.log_dir)
         self.recorder = None
         if opts.record_dir:
-            self.recorder = Recorder(opts.record_dir, options=asdict(opts), pipeline=asdict(cfg), start_map=opts.map_in)
+            self.recorder = Recorder(opts.record_dir, options=asdict(opts), pipeline=asdict(cfg), start_map=start_map)
         self._decoder = Decoder()
         self._lock = threading.Lock()
         self._truth: Truth | None = None

@@ -133,6 +133,8 @@ class PositioningConfig:
     footprint_margin_m: NonNegative = 2.0
     # A frame much closer to the ground than the map's views is detected shrunk to their scale, down to this.
     min_detection_scale: Annotated[float, Field(gt=0, le=1)] = 0.2
+    # This many of the flight's own usable landmarks in reach, and a prior map's (an orthophoto's) are left out there.
+    own_landmarks_take_over: Annotated[int, Field(ge=1)] = 60
 
 
 @dataclass(config=_STRICT, frozen=True)

@@ -148,7 +148,7 @@ def locate_photos(files: list[Path], photo_map: PhotoMap, frame: LocalFrame, cam
                   progress: Callable[[dict], None] | None = None) -> dict:
     """Locate each photo from the map alone; its GPS is read only to score the answer.
 
-    Returns ``{"images": [{file, located, lat_deg, lon_deg, accuracy_m, inliers, error_m, message, notes}],
+    Returns ``{"images": [{file, located, lat_deg, lon_deg, accuracy_m, inliers, error_m, message, notes, map}],
     "summary": {total, located, median_error_m, max_error_m}}``. With ``use_metadata`` False the photos'
     attitude and height are ignored (as if stripped).
     """
@@ -156,7 +156,7 @@ def locate_photos(files: list[Path], photo_map: PhotoMap, frame: LocalFrame, cam
     rows = []
     for path in files:
         row = {"file": path.name, "located": False, "lat_deg": None, "lon_deg": None, "accuracy_m": None,
-               "inliers": 0, "error_m": None, "message": "", "notes": []}
+               "inliers": 0, "error_m": None, "message": "", "notes": [], "map": ""}
         try:
             meta = read_photo_meta(path)
             if not use_metadata:
@@ -177,7 +177,7 @@ def locate_photos(files: list[Path], photo_map: PhotoMap, frame: LocalFrame, cam
         if isinstance(result, PhotoFix):
             lat, lon, _ = frame.to_geodetic(result.p_cam_in_ned_m)
             row.update(located=True, lat_deg=float(lat), lon_deg=float(lon), accuracy_m=result.accuracy_m,
-                       inliers=result.n_inliers, message="located")
+                       inliers=result.n_inliers, message="located", map=result.map_source)
             row["notes"].extend(result.notes)
             if meta.has_gps:  # scoring only: the photo's own GPS never reaches the locator
                 gps_ne = frame.to_ned(lat_deg=meta.lat_deg, lon_deg=meta.lon_deg, alt_amsl_m=frame.alt_amsl_m)[:2]
@@ -251,6 +251,7 @@ def build_orthophoto(files: list[Path], cam_cfg: PhotoCameraConfig | None, cfg: 
 
     from auxgps.core.camera import CameraPose
     from auxgps.io.geotiff import utm_crs, write_rgb_geotiff
+    from auxgps.io.orthophoto import TAG_GEOREF_SIGMA, TAG_GROUND_ALT
     from auxgps.io.photos import load_rgb
     from auxgps.photo.ortho import Mosaic, OrthoPhoto, fit_ground_plane, footprint_ne
 
@@ -321,7 +322,12 @@ def build_orthophoto(files: list[Path], cam_cfg: PhotoCameraConfig | None, cfg: 
                     progress(f"tile rows {row0}-{row0 + h}, cols {col0}-{col0 + w}")
                 yield row0, col0, rgb, seen
 
-    write_rgb_geotiff(out, crs, transform, width, height, tiles())
+    # What a prior map built from this orthophoto needs to know of it (auxgps/io/orthophoto.py reads them back):
+    # its placement error (the photo block's on its GPS) and the ground plane's height under its centre.
+    n_c, e_c = ne_of_colrow(np.array(width / 2), np.array(height / 2))
+    tags = {TAG_GEOREF_SIGMA: f"{photo_map.georef_sigma_h_m:.3f}",
+            TAG_GROUND_ALT: f"{frame.alt_amsl_m - float(plane.down_m(n_c, e_c)):.2f}"}
+    write_rgb_geotiff(out, crs, transform, width, height, tiles(), tags=tags)
     seams = mosaic.seam_offsets(gsd_m)
     report = OrthoReport(out, crs.to_string(), gsd_m, width, height, plane, [p.name for p in ortho_photos if p.name not in mosaic.left_out],
                          seams, messages)

@@ -165,7 +165,7 @@ def test_a_map_of_somewhere_else_is_refused_at_gps1s_first_fix():
     est.feed(Position(0.0, np.nan, np.nan, np.nan, 0.0))
     lat, lon, alt = map_frame.to_geodetic(np.array([4000.0, 3000.0, 0.0]))  # 5 km away
     note = est.feed(Gps1(0.1, 3, 12, float(lat), float(lon), float(alt), 0.5))
-    assert note is not None and note.startswith("map refused: its origin is 5.0 km from GPS1"), note
+    assert note is not None and note.startswith("map refused: it ends 5.0 km from GPS1"), note
     assert len(est.landmarks) == 0 and est.frame != map_frame and est.filter is not None
     np.testing.assert_allclose(est.frame.to_ned(lat_deg=float(lat), lon_deg=float(lon), alt_amsl_m=float(alt)), 0.0, atol=1e-6)
 

@@ -47,14 +47,14 @@ def test_transition_and_noise_are_the_block_formulas_exactly():
     dt = 0.0049999999999990052  # an IMU step as a difference of sample times
     f._predict(ImuSample(dt, HOVER_F.copy(), R))
     I3, q = np.eye(3), cfg.accel_noise_m_s2_sqrt_hz**2
-    F = np.eye(11)
+    F = np.eye(13)  # (the prior map's offset, 11:13, is a constant)
     F[0:3, 3:6] = I3 * dt
     F[0:3, 6:9] = -0.5 * R * dt * dt
     F[3:6, 6:9] = -R * dt
     decay = np.exp(-dt / cfg.fix_bias_tau_s)
     F[9:11, 9:11] = np.eye(2) * decay
-    B = np.vstack([0.5 * I3 * dt * dt, I3 * dt, np.zeros((5, 3))])
-    Q = np.zeros((11, 11))
+    B = np.vstack([0.5 * I3 * dt * dt, I3 * dt, np.zeros((7, 3))])
+    Q = np.zeros((13, 13))
     Q[0:3, 0:3] = I3 * q * dt**3 / 3.0
     Q[0:3, 3:6] = Q[3:6, 0:3] = I3 * q * dt**2 / 2.0
     Q[3:6, 3:6] = I3 * q * dt

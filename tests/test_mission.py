@@ -118,7 +118,7 @@ def test_eval_flies_a_mission_maps_on_the_way_out_and_scores_the_return(tmp_path
                            "--json", str(out)], cwd=REPO, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     figures = json.loads(out.read_text())
-    assert figures["scenario"]["mission"] == {"path": str(MISSION), "speed_m_s": 2.0, "gps_lost_at_seq": 3}
+    assert figures["scenario"]["mission"] == {"path": str(MISSION), "speed_m_s": 2.0, "gps_lost_at_seq": 3, "maps": []}
     # Mapped on the way out (only there: the estimator maps only while GPS1 is good), positioned on the way back.
     assert figures["landmarks"]["count"] >= 10
     assert figures["denied_s"] > 20.0

@@ -18,8 +18,13 @@ Inputs (:mod:`auxgps.core.events`):
 Without GPS1 (jammed before take-off, or a restart after a crash mid-flight), a loaded map still gives a start:
 each frame is located against the whole map without a prior, and the filter starts once ``acquisition_fixes``
 fixes within ``reinit_window_s`` lie on one constant-velocity track (:func:`track_through`); until then GPS_INPUT says
-no fix. A loaded map whose origin is further than ``max_map_distance_m`` from GPS1's first fix is of somewhere
+no fix. A loaded map that ends further than ``max_map_distance_m`` from GPS1's first fix is of somewhere
 else: it is dropped, said so once, and the flight maps afresh.
+
+Prior maps (from an orthophoto, ``auxgps map build --orthophoto``) are loaded like a flight's map and used to
+position, never refined: the flight maps its own landmarks beside them, and where it has enough of its own
+(``positioning.own_landmarks_take_over``), positioning leaves the prior map's out. A fix says which map it used;
+the filter carries the prior map's placement error as one offset.
 
 Heights: ``alt_above_origin_m`` is above the local frame's origin (the map's, or the ground below GPS1's first
 fix); the autopilot reports heights above home, and the two differ by home's height above the origin.
@@ -56,12 +61,13 @@ class EstimatorOptions:
 
     ``gps_delay_s``: each output describes the vehicle this long before it is asked for (the autopilot's
     ``GPS2_DELAY_MS``); ``gps1_lag_s``: how long before the autopilot gets a GPS1 reading its receiver measured it;
-    ``max_map_distance_m``: how far from a loaded map's origin GPS1's first fix may be, horizontally.
+    ``max_map_distance_m``: how far from a loaded map's landmarks GPS1's first fix may be, horizontally.
     """
 
     gps_delay_s: float = 0.1
     gps1_lag_s: float = 0.1
-    max_map_distance_m: float = 5000.0  # a loaded map's origin this far from GPS1's first fix is of somewhere else
+    max_map_distance_m: float = 5000.0  # a loaded map that ends this far from GPS1's first fix is of somewhere else
+    home_ground_radius_m: float = 20.0  # a loaded map's landmarks this near GPS1's first fix give home's ground height
     max_attitude_age_s: float = 0.2  # no fix from a frame, no IMU integration, without an attitude this recent
     height_stuck_s: float = 2.0  # a height above home repeating one value this long while climbing or descending
     height_stuck_min_vd_m_s: float = 0.3  # at this vertical speed or more (the filter's) is stuck: not fused
@@ -173,6 +179,12 @@ def track_through(fixes: list[Fix], gate_chi2: float, max_speed_m_s: float) -> T
     return Track(float(t_last), x[:2], x[2:], cov[:2, :2], cov[2:, 2:])
 
 
+def prior_map_detector(cfg: PipelineConfig) -> FeatureDetector:
+    """The flight's own detector, for maps made before the flight (``auxgps map build --orthophoto``): their
+    descriptors are then the ones a frame is matched with."""
+    return FeatureDetector(cfg.detector)
+
+
 class Estimator:
     """auxgps's decisions from events. ``landmarks`` and ``frame``: a map to start from (with its local frame),
     or a local frame alone (an empty map about a known origin); without a frame, GPS1's first 3D fix anchors one."""
@@ -206,6 +218,8 @@ class Estimator:
         self.last_correction_t_s: float | None = None
         self._last_disagreement: str | None = None
         self._map_loaded = landmarks is not None and len(landmarks) > 0  # not yet checked against GPS1
+        # The placement error of the prior maps (orthophotos) loaded: one offset the filter carries for them.
+        self._map_offset_sigma_m = max((src.georef_sigma_h_m for src in self.landmarks.sources[1:]), default=0.0)
         self._acquiring: list[Fix] = []  # fixes located without a prior, while there is no filter
         self.frame_check = FrameCheck()
         self._last_t_of: dict[type, float] = {}  # the newest time of each telemetry kind (duplicates, order)
@@ -308,13 +322,20 @@ class Estimator:
         refused = None
         if self._map_loaded and rec.fix_type >= 3 and np.all(np.isfinite(p)):
             self._map_loaded = False  # checked once, at GPS1's first 3D fix
-            d_m = float(np.hypot(p[0], p[1]))
+            p_lm = self.landmarks.p_ned_m[: len(self.landmarks), :2]
+            d_m = float(np.hypot(*np.maximum(np.maximum(p_lm.min(axis=0) - p[:2], p[:2] - p_lm.max(axis=0)), 0.0)))
             if d_m > self.options.max_map_distance_m and self.filter is None:
-                refused = (f"map refused: its origin is {d_m / 1000:.1f} km from GPS1 (more than "
+                refused = (f"map refused: it ends {d_m / 1000:.1f} km from GPS1 (more than "
                            f"{self.options.max_map_distance_m / 1000:g} km), a map of somewhere else; mapping afresh")
                 self.landmarks.clear()
+                self._map_offset_sigma_m = 0.0
                 self.frame = None
                 return self._on_gps1(rec) or refused
+            # Home's height above a prior map's origin (its orthophoto's centre, not where the vehicle takes off):
+            # the ground the map has under GPS1. A map a flight made is anchored below its own home (0).
+            near = np.flatnonzero(np.hypot(p_lm[:, 0] - p[0], p_lm[:, 1] - p[1]) <= self.options.home_ground_radius_m)
+            if len(near) >= 3 and not np.any(self.landmarks.source[: len(self.landmarks)] == 0):
+                self._home_above_origin_m = -float(np.median(self.landmarks.p_ned_m[near, 2]))
         t_meas = rec.t_s - self.options.gps1_lag_s  # when the receiver measured it
         est = self.filter.estimate_at(t_meas) if self.filter is not None else None
         sup = self.supervisor
@@ -329,7 +350,7 @@ class Estimator:
         self._gps1_sats = rec.satellites
         sigma = max(rec.h_acc_m, self.cfg.noise.gps_horizontal_m)
         if self.filter is None:
-            self.filter = NavFilter(self.cfg.fusion, t_meas, p, np.zeros(3), sigma, 1.0)
+            self.filter = NavFilter(self.cfg.fusion, t_meas, p, np.zeros(3), sigma, 1.0, self._map_offset_sigma_m)
         else:
             # Just trusted (again), the filter may be put onto GPS1; once GPS1 has been mapped from, a run of its
             # reports the filter's gate rejects is a jump or a fast drag, and the map knows better than GPS1 where
@@ -467,8 +488,8 @@ class Estimator:
             est = self.filter.estimate_at(res.t_s)
             d_ne = res.p_ned_m[:2] - est.p_ned_m[:2]
             d = float(np.linalg.norm(d_ne))
-            drag = self.supervisor.visual_check(res.t_s, d_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2],
-                                                np.eye(2) * self.filter.fix_bias_sigma_m**2)
+            shared_m2 = self.filter.fix_bias_sigma_m**2 + (res.prior_share * self._map_offset_sigma_m) ** 2
+            drag = self.supervisor.visual_check(res.t_s, d_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2], np.eye(2) * shared_m2)
             if drag:
                 common["note"] = _joined(common["note"], drag, self._undo_unverified(res.t_s))
             return FrameResult(t, "self-check", f"{d:.3f} m", self_check_m=d, **common)
@@ -477,7 +498,7 @@ class Estimator:
         if amb is not None and 0.0 <= t - amb[0] <= self.cfg.fusion.ambiguity_memory_s:
             cov_ne = cov_ne + np.eye(2) * amb[1] ** 2  # a neighbour frame could not tell two readings this far apart
         with self.stopwatch("filtering"):
-            decision = self.filter.update_position(res.t_s, res.p_ned_m[:2], cov_ne, visual=True)
+            decision = self.filter.update_position(res.t_s, res.p_ned_m[:2], cov_ne, visual=True, prior_share=res.prior_share)
         if decision.accepted:
             self.last_correction_t_s = max(res.t_s, self.last_correction_t_s or -np.inf)
             if self.heading is not None and job.heading is not None and res.heading_turn_rad is not None:
@@ -535,7 +556,8 @@ class Estimator:
         sigma_p = float(np.sqrt(np.linalg.eigvalsh(track.cov_p_m2).max()))
         sigma_v = float(np.hypot(np.sqrt(np.linalg.eigvalsh(track.cov_v_m2_s2).max()), fusion.reinit_speed_sigma_m_s))
         p = np.array([track.p_ne_m[0], track.p_ne_m[1], -self.alt_above_origin_m])
-        self.filter = NavFilter(fusion, track.t_s, p, np.array([track.v_ne_m_s[0], track.v_ne_m_s[1], 0.0]), sigma_p, sigma_v)
+        self.filter = NavFilter(fusion, track.t_s, p, np.array([track.v_ne_m_s[0], track.v_ne_m_s[1], 0.0]), sigma_p, sigma_v,
+                                self._map_offset_sigma_m)
         self._acquiring = []
         self.last_correction_t_s = track.t_s
         reason = f"acquired without a prior on {fusion.acquisition_fixes} fixes: filter started (sigma {sigma_p:.2f} m)"

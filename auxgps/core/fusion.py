@@ -1,7 +1,7 @@
 """Fusion of visual fixes with the autopilot's IMU and attitude: an extended Kalman filter on filterpy.
 
-State (11): position NED (m), velocity NED (m/s), accelerometer bias in the body frame (m/s^2), and the north/east
-error that visual fixes share (m). Between fixes the
+State (13): position NED (m), velocity NED (m/s), accelerometer bias in the body frame (m/s^2), the north/east
+error that visual fixes share (m), and the north/east offset of a prior map (m). Between fixes the
 filter is driven by the IMU: specific force minus the bias, rotated by the attitude, plus gravity. The bias is
 estimated because a tenth of a m/s^2 left in the specific force, integrated over a few seconds without a fix,
 is metres; it is observable from the fixes as soon as the vehicle turns. The shared fix error is what does not
@@ -9,6 +9,12 @@ average out over frames: an error in the autopilot's attitude that lasts seconds
 and the map's own errors. Fusing twenty fixes a second as if their errors were independent would make the filter
 believe itself to a centimetre, gate out good fixes and report an accuracy that the truth does not bear out; as a
 first-order Gauss-Markov state it keeps the reported accuracy honest. GPS1 readings do not share it.
+
+A prior map (an orthophoto's) is placed on Earth only as well as the orthophoto is: one offset, the same for all
+its landmarks and for as long as the flight uses them. It is a random constant of the map's stated placement
+error (``map_offset_sigma_m``), seen by a fix in the share of its inliers that are the prior map's: the filter
+learns it from the first prior-map fixes after GPS1 is lost (while the IMU still holds the position GPS1 gave),
+and never makes the fixes surer than it.
 
 Every input is stamped with the time it describes, and any may arrive late (a visual fix a frame's processing
 after its capture, GPS1 its receiver's lag after its measurement). The filter keeps a short history of every step
@@ -35,25 +41,26 @@ from auxgps.core.localise import PositionPrior
 log = logging.getLogger(__name__)
 
 GRAVITY_NED_M_S2 = np.array([0.0, 0.0, 9.80665])
-_N = 11
+_N = 13
 _I3 = np.arange(3)  # diagonal indices of a 3 x 3 block
 _I2 = np.arange(2)
 _EYE3 = np.eye(3)
 
 
-def _H_ne(dt_s: float, visual: bool) -> np.ndarray:
-    """(2, 11) horizontal position ``dt_s`` after the state's time (carried by its velocity); a visual fix also
-    sees the shared fix error."""
+def _H_ne(dt_s: float, visual: bool, prior_share: float = 0.0) -> np.ndarray:
+    """(2, 13) horizontal position ``dt_s`` after the state's time (carried by its velocity); a visual fix also
+    sees the shared fix error, and the prior map's offset in the share of its inliers from it."""
     H = np.zeros((2, _N))
     H[_I2, _I2] = 1.0
     H[_I2, _I2 + 3] = dt_s
     if visual:
         H[_I2, _I2 + 9] = 1.0
+        H[_I2, _I2 + 11] = prior_share
     return H
 
 
 def _H_down(dt_s: float) -> np.ndarray:
-    """(1, 11) down position ``dt_s`` after the state's time."""
+    """(1, 13) down position ``dt_s`` after the state's time."""
     H = np.zeros((1, _N))
     H[0, 2], H[0, 5] = 1.0, dt_s
     return H
@@ -124,11 +131,14 @@ class GateDecision:
 class NavFilter:
     """Position, velocity and accelerometer-bias EKF. ``cfg`` is a :class:`auxgps.config.FusionConfig`."""
 
-    def __init__(self, cfg, t_s: float, p_ned_m: np.ndarray, v_ned_m_s: np.ndarray, sigma_p_m: float, sigma_v_m_s: float) -> None:
+    def __init__(self, cfg, t_s: float, p_ned_m: np.ndarray, v_ned_m_s: np.ndarray, sigma_p_m: float, sigma_v_m_s: float,
+                 map_offset_sigma_m: float = 0.0) -> None:
         self.cfg = cfg
+        self.map_offset_sigma_m = float(map_offset_sigma_m)
         self._ekf = ExtendedKalmanFilter(dim_x=_N, dim_z=2)
-        self._ekf.x = np.concatenate([p_ned_m, v_ned_m_s, np.zeros(5)]).reshape(_N, 1).astype(float)
-        self._ekf.P = np.diag([sigma_p_m**2] * 3 + [sigma_v_m_s**2] * 3 + [cfg.accel_bias_sigma_m_s2**2] * 3 + [self.fix_bias_sigma_m**2] * 2)
+        self._ekf.x = np.concatenate([p_ned_m, v_ned_m_s, np.zeros(7)]).reshape(_N, 1).astype(float)
+        self._ekf.P = np.diag([sigma_p_m**2] * 3 + [sigma_v_m_s**2] * 3 + [cfg.accel_bias_sigma_m_s2**2] * 3
+                              + [self.fix_bias_sigma_m**2] * 2 + [self.map_offset_sigma_m**2] * 2)
         self.t_s = float(t_s)
         # Every step taken, in time order, the state after each; the first is the state it started from.
         self._history: list[_Step] = [_Step(self.t_s, self.t_s, "start", (), self._ekf.x.copy(), self._ekf.P.copy())]
@@ -156,10 +166,12 @@ class NavFilter:
         return True
 
     def update_position(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray, visual: bool = False,
-                        reinit: bool = True) -> GateDecision:
+                        reinit: bool = True, prior_share: float = 0.0) -> GateDecision:
         """Fuse a horizontal position fix captured at ``t_s`` (up to ``history_s`` ago). A ``visual`` fix carries
-        the error all visual fixes share (see the module's docstring); a GPS reading does not. Without ``reinit``,
-        a run of consistent rejected fixes is reported (``rejected_run``) but the filter stays where it is."""
+        the error all visual fixes share (see the module's docstring), and ``prior_share`` (0 to 1) of the prior
+        map's offset; a GPS reading neither. Without ``reinit``, a run of consistent rejected fixes is reported
+        (``rejected_run``) but the filter stays where it is."""
+        prior_share = float(np.clip(prior_share, 0.0, 1.0)) if visual and self.map_offset_sigma_m > 0 else 0.0
         t_s = float(t_s)
         p_ne_m = np.asarray(p_ne_m, float).reshape(2)
         cov_ne_m2 = np.asarray(cov_ne_m2, float).reshape(2, 2)
@@ -168,21 +180,21 @@ class NavFilter:
         later = self._rewind(t_s)
         if later is None:
             return self._decide(GateDecision(t_s, False, np.nan, f"fix {self.t_s - t_s:.3f} s old, older than the history"))
-        H = _H_ne(t_s - self.t_s, visual)
+        H = _H_ne(t_s - self.t_s, visual, prior_share)
         S = H @ self._ekf.P @ H.T + cov_ne_m2
         y = p_ne_m - (H @ self._ekf.x)[:, 0]
         m2 = float(y @ np.linalg.solve(S, y))
         if m2 <= self.cfg.gate_chi2:
-            self._take("position", t_s, (p_ne_m, cov_ne_m2, visual))
+            self._take("position", t_s, (p_ne_m, cov_ne_m2, visual, prior_share))
             self._rejected_run.clear()
             decision = GateDecision(t_s, True, m2, "accepted")
         else:
             decision = GateDecision(t_s, False, m2, f"innovation {np.sqrt(m2):.1f} sigma")
-            self._rejected_run.append((t_s, p_ne_m, cov_ne_m2))
+            self._rejected_run.append((t_s, p_ne_m, cov_ne_m2, prior_share))
             if self._rejected_run_agrees():
                 self._rejected_run.clear()
                 if reinit:
-                    self._take("reinit", t_s, (p_ne_m, cov_ne_m2))
+                    self._take("reinit", t_s, (p_ne_m, cov_ne_m2, prior_share))
                     self.n_reinit += 1
                     log.warning("filter re-initialised at t=%.3f s on %d consistent rejected fixes", t_s, self.cfg.reinit_count)
                     decision = GateDecision(t_s, False, m2, "re-initialised on a run of consistent rejected fixes", True)
@@ -326,8 +338,8 @@ class NavFilter:
         if kind == "imu":
             self._predict(data[0])
         elif kind == "position":
-            p_ne_m, cov_ne_m2, visual = data
-            H = _H_ne(t_s - self.t_s, visual)
+            p_ne_m, cov_ne_m2, visual, prior_share = data
+            H = _H_ne(t_s - self.t_s, visual, prior_share)
             self._ekf.update(p_ne_m.reshape(2, 1), lambda x: H, lambda x: H @ x, R=cov_ne_m2)
         elif kind == "altitude":
             alt_above_origin_m, sigma_m = data
@@ -359,8 +371,8 @@ class NavFilter:
         if len(run) < cfg.reinit_count:
             return False
         v = self._ekf.x[3:5, 0]
-        t_last, p_last, c_last = run[-1]
-        for t, p, c in run[:-1]:
+        t_last, p_last, c_last, _ = run[-1]
+        for t, p, c, _ in run[:-1]:
             d = (p + v * (t_last - t)) - p_last
             S = c + c_last + np.eye(2) * (cfg.reinit_speed_sigma_m_s * (t_last - t)) ** 2
             if d @ np.linalg.solve(S, d) > cfg.gate_chi2:
@@ -374,16 +386,20 @@ class NavFilter:
         ground, from ``fix_bias_sigma_m`` (low flights) by ``fix_bias_per_height``."""
         return max(self.cfg.fix_bias_sigma_m, self.cfg.fix_bias_per_height * max(-float(self._ekf.x[2, 0]), 0.0))
 
-    def _reinitialise(self, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray) -> None:
-        """Put the position on a fix, forget the shared fix error, loosen the velocity."""
+    def _reinitialise(self, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray, prior_share: float = 0.0) -> None:
+        """Put the position on a fix, forget the shared fix error and the prior map's offset (the fix holds the
+        share ``prior_share`` of it: the position is then that uncertain too), loosen the velocity."""
         x, P = self._ekf.x, self._ekf.P
         x[0:2, 0] = p_ne_m
-        x[9:11, 0] = 0.0
-        for block in (slice(0, 2), slice(9, 11)):
+        x[9:13, 0] = 0.0
+        for block in (slice(0, 2), slice(9, 13)):
             P[block, :] = 0.0
             P[:, block] = 0.0
-        P[0:2, 0:2] = cov_ne_m2
+        var_map = self.map_offset_sigma_m**2
+        P[0:2, 0:2] = cov_ne_m2 + np.eye(2) * prior_share**2 * var_map
         P[9:11, 9:11] = np.eye(2) * self.fix_bias_sigma_m**2
+        P[11:13, 11:13] = np.eye(2) * var_map
+        P[0:2, 11:13] = P[11:13, 0:2] = -np.eye(2) * prior_share * var_map  # position = fix - share * offset
         P[3:5, 3:5] += np.eye(2) * self.cfg.reinit_speed_sigma_m_s**2
 
     def _decide(self, d: GateDecision) -> GateDecision:

@@ -20,6 +20,7 @@ from collections import deque
 import numpy as np
 
 from auxgps.core.features import DESCRIPTOR_BYTES
+from auxgps.core.prior_map import FLIGHT, MapSource
 
 _TRIU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 
@@ -163,9 +164,9 @@ class LandmarkMap:
     GROWTH = 1.5
     #: The per-landmark arrays, in the order of the map file (``t_first_s`` is not saved: see :meth:`from_columns`).
     COLUMNS = ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "descriptor_range_m", "chi2_mean", "n_visible",
-               "t_first_s")
+               "source", "t_first_s")
     #: Columns a map file may lack, and what they are then.
-    OPTIONAL = {"t_first_s": -np.inf}
+    OPTIONAL = {"t_first_s": -np.inf, "source": 0}
     #: chi2_mean of a landmark :meth:`demote` took out of use (no view agreement is that bad).
     DEMOTED_CHI2 = np.float16(60000.0)
     #: What :meth:`observe` changes, and :meth:`count_visible`: what the journal keeps of each before the change.
@@ -187,17 +188,22 @@ class LandmarkMap:
         self.n_visible = np.zeros(capacity, np.uint16)
         # When it was first geotagged, s on the estimator's clock; -inf: before this process (a loaded map).
         self.t_first_s = np.full(capacity, -np.inf, np.float32)
+        # Which of ``sources`` it comes from: 0 this flight (or an earlier one's map), others prior maps, which
+        # the flight uses to position but never refines (their error is the source's, shared by all of them).
+        self.source = np.zeros(capacity, np.uint8)
+        self.sources: list[MapSource] = [FLIGHT]
         self._journal: deque[tuple[float, np.ndarray, dict[str, np.ndarray]]] | None = None
         self._journal_span_s = 0.0
         self._journal_forgot_s = -np.inf  # the newest change the journal has let go of (it cannot undo to before it)
 
     @classmethod
-    def from_columns(cls, columns: dict[str, np.ndarray], capacity: int | None = None) -> "LandmarkMap":
+    def from_columns(cls, columns: dict[str, np.ndarray], capacity: int | None = None,
+                     sources: list[MapSource] | None = None) -> "LandmarkMap":
         """A map holding the given rows of every column (a map file's, or another map's), its index built now.
 
         ``columns``: each of :data:`COLUMNS` with the same number of rows (those of :data:`OPTIONAL` may be left
         out: a map file's landmarks were first seen before this process); ``capacity``: rows to allocate (at least
-        that number)."""
+        that number); ``sources``: what the ``source`` column's numbers name (default: this flight alone)."""
         n_rows = len(columns["n_seen"]) if "n_seen" in columns else 0
         columns = {**{k: np.full(n_rows, v, np.float32) for k, v in cls.OPTIONAL.items()}, **columns}
         missing = [name for name in cls.COLUMNS if name not in columns]
@@ -210,6 +216,12 @@ class LandmarkMap:
         for name in cls.COLUMNS:
             getattr(lm, name)[:n] = columns[name]
         lm._n = n
+        if sources is not None:
+            lm.sources = list(sources)
+        if n and int(lm.source[:n].max()) >= len(lm.sources):
+            raise ValueError(f"landmark source {int(lm.source[:n].max())} is not among the map's {len(lm.sources)} sources")
+        if lm.sources[0] != FLIGHT:
+            raise ValueError("source 0 of a flight map must be the flight itself")
         lm.sync_index()  # built here, so that the first frame is not the one that pays for it
         return lm
 
@@ -223,6 +235,7 @@ class LandmarkMap:
     def clear(self) -> None:
         """Forget every landmark (a map refused after loading); capacity is kept."""
         self._n = 0
+        self.sources = [FLIGHT]
         self.index.invalidate()
         if self._journal is not None:
             self._journal.clear()
@@ -323,6 +336,7 @@ class LandmarkMap:
         self.chi2_mean[ids] = 0.0
         self.n_visible[ids] = 1
         self.t_first_s[ids] = t_first_s
+        self.source[ids] = 0
         self._n += m
         return ids
 
@@ -373,6 +387,49 @@ class LandmarkMap:
             & (self.chi2_mean[ids] <= max_chi2)
             & (n_seen >= min_found_ratio * self.n_visible[ids].astype(np.int32))
         )
+
+    def merge(self, other: "LandmarkMap", p_ned_m: np.ndarray | None = None) -> np.ndarray:
+        """Append every landmark of ``other``, at ``p_ned_m`` (N, 3) if given (its positions in this map's frame;
+        default: the same frame), its sources after this map's (a flight source of ``other`` stays this map's
+        source 0). Information matrices are kept as they are (frames a few km apart differ in their axes by
+        under a milliradian). Returns their new ids."""
+        if other.descriptors.shape[1] != self.descriptors.shape[1]:
+            raise ValueError("maps of different descriptors cannot be merged")
+        cols = other.columns()
+        n = len(other)
+        renumber = np.zeros(len(other.sources), np.uint8)
+        for k, src in enumerate(other.sources):
+            if k == 0:
+                continue
+            if len(self.sources) >= 255:
+                raise ValueError("too many map sources (255 at most)")
+            self.sources.append(src)
+            renumber[k] = len(self.sources) - 1
+        self._grow(self._n + n)
+        ids = np.arange(self._n, self._n + n)
+        for name in self.COLUMNS:
+            getattr(self, name)[ids] = cols[name]
+        if p_ned_m is not None:
+            self.p_ned_m[ids] = np.asarray(p_ned_m, np.float32)
+        self.source[ids] = renumber[cols["source"]]
+        self._n += n
+        return ids
+
+    def shared_sigma_h_m(self, ids: np.ndarray) -> float:
+        """The horizontal offset these landmarks share through their sources (m, one sigma): each source's
+        placement error, weighed by its share of ``ids`` (variances)."""
+        if len(ids) == 0 or len(self.sources) == 1:
+            return 0.0
+        counts = np.bincount(self.source[ids], minlength=len(self.sources))
+        var = np.array([s.georef_sigma_h_m**2 for s in self.sources])
+        return float(np.sqrt(counts @ var / counts.sum()))
+
+    def source_name(self, ids: np.ndarray) -> str:
+        """The source most of ``ids`` come from (its ``name``, or its kind), for the logs."""
+        if len(ids) == 0:
+            return ""
+        src = self.sources[int(np.bincount(self.source[ids]).argmax())]
+        return src.name or src.kind
 
     def covariance(self, ids: np.ndarray) -> np.ndarray:
         """(M, 3, 3) position covariance, m^2."""

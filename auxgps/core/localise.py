@@ -39,7 +39,11 @@ class Fix:
 
     ``heading_turn_rad``: the turn about the vertical (positive
     clockwise seen from above) the frame's rays needed to fit them, as the image alone says it, with its variance
-    ``heading_turn_var_rad2`` (None: the image does not tell, the attitude's prior decided it)."""
+    ``heading_turn_var_rad2`` (None: the image does not tell, the attitude's prior decided it).
+
+    ``prior_share``: the share of its inliers that are prior-map landmarks (an orthophoto's), whose placement
+    error they all share: not in ``cov_ned_m2`` (the filter carries it as a state); ``map_source``: the source
+    most of its inliers come from ("flight", or the prior map's name)."""
 
     t_s: float
     p_ned_m: np.ndarray
@@ -49,6 +53,8 @@ class Fix:
     n_features: int
     heading_turn_rad: float | None = None
     heading_turn_var_rad2: float | None = None
+    prior_share: float = 0.0
+    map_source: str = "flight"
 
     @property
     def sigma_h_rms_m(self) -> float:
@@ -302,7 +308,9 @@ class Localiser:
         if info_image > 0.1 * prior_info[5, 5]:
             turn_var = 1.0 / info_image
             turn = verdict.turn_rad / verdict.turn_var_rad2 * turn_var
-        return Fix(t_s, p, cov, n_inl, n_corr, n_feat, turn, turn_var)
+        ids = corr.lm_id[inl]
+        prior_share = float(np.mean(self.map.source[ids] != 0)) if len(ids) else 0.0
+        return Fix(t_s, p, cov, n_inl, n_corr, n_feat, turn, turn_var, prior_share, self.map.source_name(ids))
 
     # -- steps -------------------------------------------------------------------------------------------------
 
@@ -416,7 +424,13 @@ class Localiser:
             ids = self.map.ids_in_box((n - reach, n + reach), (e - reach, e + reach))
         if first_seen_before_s is not None:
             ids = ids[self.map.t_first_s[ids] < first_seen_before_s]
-        return ids[self.map.usable(ids, m.min_seen, m.max_mean_chi2, m.min_found_ratio)]
+        ids = ids[self.map.usable(ids, m.min_seen, m.max_mean_chi2, m.min_found_ratio)]
+        # Where the flight has mapped the ground itself, its own landmarks take over from a prior map's: theirs
+        # are placed by this flight's GPS to centimetres, a prior map's share its orthophoto's metre-level offset.
+        prior = self.map.source[ids] != 0
+        if np.any(prior) and np.count_nonzero(~prior) >= cfg.own_landmarks_take_over:
+            ids = ids[~prior]
+        return ids
 
     def _match(self, features: Features, cand: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Each feature to every landmark within the Hamming limit, the ``k`` nearest at most.

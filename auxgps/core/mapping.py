@@ -81,6 +81,7 @@ class Mapper:
         reach = max(nav.alt_above_origin_m, 1.0) * self._footprint_tan + 5.0
         with self.stopwatch("matching"):
             cand = self.map.ids_in_box((c[0] - reach, c[0] + reach), (c[1] - reach, c[1] + reach))
+            cand = cand[self.map.source[cand] == 0]  # a prior map's landmarks are used to position, never refined
         matched_feat = matched_lm = np.zeros(0, int)
         if len(cand):
             uv_lm, in_front = pose.project(self.camera, self.map.p_ned_m[cand].astype(float))

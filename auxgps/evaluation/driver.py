@@ -22,6 +22,7 @@ from auxgps.config import PipelineConfig
 from auxgps.errors import ConfigError
 from auxgps.evaluation.metrics import summarize
 from auxgps.evaluation.scenario import RunRecord, run_mission, run_once
+from auxgps.io.map_file import load_maps
 from auxgps.io.mission import load_mission
 from auxgps.sim.flight import SimConfig, gps_lost_waypoint, mission_waypoints_ned
 from auxgps.sim.world import load_world
@@ -29,11 +30,13 @@ from auxgps.sim.world import load_world
 
 @dataclass(frozen=True)
 class MissionRun:
-    """A mission flown instead of the survey and positioning flight: its file, speed, and the item GPS1 is lost at."""
+    """A mission flown instead of the survey and positioning flight: its file, speed, the item GPS1 is lost at, and
+    the maps the estimator starts from (prior maps: an orthophoto's, ``auxgps map build --orthophoto``)."""
 
     path: str
     speed_m_s: float
     gps_lost_at_seq: int
+    maps: tuple[str, ...] = ()
 
 
 def run_job(args) -> RunRecord:
@@ -45,7 +48,7 @@ def run_job(args) -> RunRecord:
     world_path, alt_m, fps, seed, pipeline, sim, mapping_fps, mission = args
     if mission is not None:
         return run_mission(load_world(world_path), load_mission(mission.path), alt_m, mission.speed_m_s, mission.gps_lost_at_seq,
-                           fps, seed, pipeline, sim)
+                           fps, seed, pipeline, sim, maps=mission.maps)
     return run_once(load_world(world_path), alt_m, fps, seed, pipeline, sim, mapping_fps=mapping_fps)
 
 
@@ -114,6 +117,8 @@ def evaluate(
     if mission is not None:
         loaded = load_mission(mission.path)
         gps_lost_waypoint(loaded, mission_waypoints_ned(loaded, world.frame, alt_m)[1], mission.gps_lost_at_seq)
+        if mission.maps:
+            load_maps(list(mission.maps), world.frame)
     mapping_fps = mapping_fps or fps
     jobs = [(str(world_path), alt_m, fps, seed + k, pipeline, sim, mapping_fps, mission) for k in range(runs)]
     workers = max(1, min(workers or os.cpu_count() or 1, runs))

@@ -140,7 +140,7 @@ def bench_rasters(cache_dir: Path, cfg: RenderBenchConfig, progress=None) -> tup
 
 
 def _world(ortho: Path, dsm: Path | None):
-    from auxgps.sim.georaster import GeoRaster
+    from auxgps.io.georaster import GeoRaster
     from auxgps.sim.world import World
 
     return World(ORIGIN, (), None, None, None, "render bench", "synthetic orthophoto",

@@ -17,6 +17,7 @@ from auxgps.core.camera import CameraPose, PinholeCamera, camera_from_config
 from auxgps.core.estimator import Estimator, EstimatorOptions, FrameResult
 from auxgps.core.events import Frame
 from auxgps.core.geometry import R_body_cam_from_mount
+from auxgps.io.map_file import load_maps
 from auxgps.io.mission import Mission
 from auxgps.sim.faults import FaultInjector
 from auxgps.sim.flight import SimConfig, fly, gps_lost_waypoint, imu_bias, lawnmower_waypoints, mission_waypoints_ned
@@ -199,10 +200,11 @@ class _MapTruth:
 
     def errors(self, est: Estimator, pipeline: PipelineConfig) -> tuple[np.ndarray, np.ndarray]:
         """Landmark errors (estimate - truth, north/east, m): those positioning uses (seen more than 10 times, views
-        consistent), and all seen more than 10 times. A landmark's truth is the median of its true points."""
+        consistent), and all seen more than 10 times. A landmark's truth is the median of its true points. The
+        flight's own landmarks only: a prior map's are not seen by the flight as landmarks."""
         lm = est.landmarks
         m = pipeline.mapping
-        seen = np.flatnonzero(lm.n_seen[: len(lm)] >= m.min_seen)
+        seen = np.flatnonzero((lm.n_seen[: len(lm)] >= m.min_seen) & (lm.source[: len(lm)] == 0))
         used = seen[lm.usable(seen, m.min_seen, m.max_mean_chi2, m.min_found_ratio)]
 
         def err(ids):
@@ -335,19 +337,21 @@ def run_once(
 
 def run_mission(
     world: World, mission: Mission, alt_m: float, speed_m_s: float, gps_lost_at_seq: int, fps: float, seed: int,
-    pipeline: PipelineConfig, sim: SimConfig, progress=None,
+    pipeline: PipelineConfig, sim: SimConfig, progress=None, maps: tuple[str, ...] = (),
 ) -> RunRecord:
     """Fly ``mission`` once over ``world`` from home at its origin, every height at ``alt_m`` and at ``speed_m_s``:
     mapping while GPS1 is good, GPS1 lost (no fix) on reaching mission item ``gps_lost_at_seq`` (its number in the
     file), the rest flown and scored as :func:`run_once` scores its positioning flight. One estimator, as in a real
     flight: the map it positions on is the one it made on the way out. Faults apply at ``at_s`` after take-off; the
-    camera's effects of the way back from the moment GPS1 is lost."""
+    camera's effects of the way back from the moment GPS1 is lost. ``maps``: map files the estimator starts from
+    (prior maps), moved into the world's frame."""
     path_ned, owner = mission_waypoints_ned(mission, world.frame, alt_m)
     k = gps_lost_waypoint(mission, owner, gps_lost_at_seq)
     su = _Setup(world, pipeline, sim, seed)
     traj = fly(path_ned, speed_m_s, sim.vehicle, su.rng_fly_map, sim.dt_s)
     denied_from = float(traj.reached_t_s[k])
-    est = Estimator(pipeline, su.options, frame=world.frame)
+    landmarks = load_maps(list(maps), world.frame)[0] if maps else None
+    est = Estimator(pipeline, su.options, landmarks=landmarks, frame=world.frame)
     map_truth, scored = _MapTruth(), _Scored(su, traj, denied_from)
 
     def on_frame(seen: _Seen) -> None:

@@ -4,7 +4,8 @@ for its replay, so that the two can be compared line by line.
 Files in the log folder, flushed per row (a crash loses nothing written):
 
 - ``fixes.csv``: per frame that reached positioning: time, kind ("none", "self-check", "visual"), the reason or
-  gate decision, inliers, squared Mahalanobis distance, accepted, latitude and longitude (deg), one-sigma (m);
+  gate decision, inliers, squared Mahalanobis distance, accepted, latitude and longitude (deg), one-sigma (m), and
+  the map the fix used (``flight``, or a prior map's file name: the source most of its inliers come from);
 - ``gps_input.csv``: per GPS_INPUT: time, fix type, latitude, longitude (deg), altitude AMSL and horizontal
   accuracy (m), satellites, auxgps's mode;
 - ``events.csv``: time, text and the autopilot's boot time of each status line, fault and GPS1 disagreement (the
@@ -59,12 +60,14 @@ class FlightLog(CsvLog):
         loc = res.located
         n = loc.n_inliers if loc is not None else ""
         if res.kind == "none" or frame is None:
-            self.row("fixes", t_s=res.t_s, kind="none", reason=res.reason, n=f"{n}", m2="", accepted="", lat_deg="", lon_deg="", sigma_m="")
+            self.row("fixes", t_s=res.t_s, kind="none", reason=res.reason, n=f"{n}", m2="", accepted="", lat_deg="", lon_deg="", sigma_m="",
+                     map="")
             return
         lat_deg, lon_deg, _ = frame.to_geodetic(loc.p_ned_m)
         d = res.decision
         self.row("fixes", t_s=res.t_s, kind=res.kind, reason=res.reason, n=n, m2=f"{d.mahalanobis2:.2f}" if d else "",
-                 accepted=d.accepted if d else "", lat_deg=float(lat_deg), lon_deg=float(lon_deg), sigma_m=round(loc.sigma_h_rms_m, 3))
+                 accepted=d.accepted if d else "", lat_deg=float(lat_deg), lon_deg=float(lon_deg), sigma_m=round(loc.sigma_h_rms_m, 3),
+                 map=loc.map_source)
 
     def output(self, out: Output) -> None:
         g = out.gps

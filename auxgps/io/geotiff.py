@@ -36,8 +36,9 @@ def overview_factors(width_px: int, height_px: int, block_px: int = BLOCK_PX) ->
 
 
 def write_rgb_geotiff(path: Path | str, crs: CRS, transform: rasterio.Affine, width_px: int, height_px: int,
-                      tiles: Iterable[tuple[int, int, np.ndarray, np.ndarray]]) -> Path:
-    """Write ``tiles`` (row0, col0, (h, w, 3) uint8 RGB, (h, w) bool seen) into a new GeoTIFF at ``path``."""
+                      tiles: Iterable[tuple[int, int, np.ndarray, np.ndarray]], tags: dict | None = None) -> Path:
+    """Write ``tiles`` (row0, col0, (h, w, 3) uint8 RGB, (h, w) bool seen) into a new GeoTIFF at ``path``, with
+    these dataset ``tags`` (GDAL metadata)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".part")
@@ -55,6 +56,8 @@ def write_rgb_geotiff(path: Path | str, crs: CRS, transform: rasterio.Affine, wi
             with rasterio.open(tmp, "r+") as dst:
                 dst.build_overviews(overview_factors(width_px, height_px), Resampling.average)
                 dst.update_tags(ns="rio_overview", resampling="average")
+                if tags:
+                    dst.update_tags(**{k: str(v) for k, v in tags.items()})
         os.replace(tmp, path)
     finally:
         if tmp.exists():

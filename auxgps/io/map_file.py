@@ -1,12 +1,15 @@
 """Landmark map files: a versioned, documented format, written atomically.
 
-Format (version 3): a NumPy ``.npz`` archive (uncompressed) holding
+Format (version 4): a NumPy ``.npz`` archive (uncompressed) holding
 
 ======================  =================  ===============================================================
 array                   shape, dtype       meaning
 ======================  =================  ===============================================================
 ``meta``                (), str (JSON)     ``{"format": "auxgps-map", "version": 3, "origin": {lat_deg,
-                                           lon_deg, alt_amsl_m}, "count": N, "descriptor": "orb" | "sift"}``;
+                                           lon_deg, alt_amsl_m}, "count": N, "descriptor": "orb" | "sift",
+                                           "sources": [{kind, name, georef_sigma_h_m}]}``: where the
+                                           landmarks come from (kind "flight", "orthophoto" or
+                                           "photos"; a flight map's source 0 is the flight);
                                            a map built from photos adds ``cameras`` (camera id ->
                                            ``{width_px, height_px, K, dist}``, refined intrinsics),
                                            ``georef_sigma_h_m`` (one-sigma error of the whole map's
@@ -21,9 +24,15 @@ array                   shape, dtype       meaning
 ``descriptor_range_m``  (N,) float16       range that view saw it from, over the frame's detection scale, m
                                            (NaN: unknown)
 ``chi2_mean``           (N,) float16       mean squared Mahalanobis innovation of its observations
+``source``              (N,) uint8         its source, an index into ``sources``
 ======================  =================  ===============================================================
 
-Versions 1 and 2 are still read: version 2 is version 3 without ``descriptor_range_m`` (read as unknown), and
+A map built from an orthophoto (``auxgps map build --orthophoto``) also holds ``prior`` in ``meta``: the
+orthophoto, the build's ground sample distance, how heights were found, and the camera focal length its
+descriptor ranges assume.
+
+Versions 1 to 3 are still read: version 3 is version 4 without ``source`` and ``sources`` (one source: the
+flight, or for a photo map its photos), version 2 is version 3 without ``descriptor_range_m`` (read as unknown), and
 version 1 is version 2 without ``descriptor`` in ``meta`` (always ORB). A file is written to a temporary
 name in the same folder, flushed to disk and renamed over the target, so a crash leaves either the old map or
 the new one, never half of one.
@@ -42,12 +51,13 @@ import numpy as np
 from auxgps.core.camera import PinholeCamera
 from auxgps.core.geometry import LocalFrame
 from auxgps.core.landmarks import LandmarkMap, pack_sym, unpack_sym
+from auxgps.core.prior_map import FLIGHT, MapSource
 from auxgps.errors import MapError
 from auxgps.photo.types import PhotoMap, SolvedPhoto
 
 FORMAT = "auxgps-map"
-VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
+VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)
 DESCRIPTOR_BYTES = {"orb": 32, "sift": 128}
 _COLUMNS = {
     "descriptors": (np.uint8, None),  # width set by the descriptor kind
@@ -58,6 +68,7 @@ _COLUMNS = {
     "view_cos": (np.float16, ()),
     "descriptor_range_m": (np.float16, ()),
     "chi2_mean": (np.float16, ()),
+    "source": (np.uint8, ()),
 }
 
 
@@ -96,11 +107,15 @@ def _origin(frame: LocalFrame) -> dict:
     return {"lat_deg": frame.lat_deg, "lon_deg": frame.lon_deg, "alt_amsl_m": frame.alt_amsl_m}
 
 
-def save_map(path: Path | str, landmarks: LandmarkMap, frame: LocalFrame) -> None:
-    """Write a flight map (ORB ``landmarks``, anchored at ``frame``) to ``path`` atomically."""
+def save_map(path: Path | str, landmarks: LandmarkMap, frame: LocalFrame, prior: dict | None = None) -> None:
+    """Write a flight map (ORB ``landmarks``, anchored at ``frame``) to ``path`` atomically; ``prior``: what a map
+    built from an orthophoto says about its making (``meta["prior"]``)."""
     n = len(landmarks)
     kind = "sift" if landmarks.descriptors.shape[1] == DESCRIPTOR_BYTES["sift"] else "orb"
-    meta = {"format": FORMAT, "version": VERSION, "origin": _origin(frame), "count": n, "descriptor": kind}
+    meta = {"format": FORMAT, "version": VERSION, "origin": _origin(frame), "count": n, "descriptor": kind,
+            "sources": [s.to_json() for s in landmarks.sources]}
+    if prior is not None:
+        meta["prior"] = prior
     _write(Path(path), meta, {name: getattr(landmarks, name)[:n] for name in _COLUMNS})
 
 
@@ -126,6 +141,9 @@ def _read(path: Path) -> tuple[dict, dict, LocalFrame]:
                 if name == "descriptor_range_m" and meta["version"] < 3:
                     columns[name] = np.full(n, np.nan, dtype)
                     continue
+                if name == "source" and meta["version"] < 4:
+                    columns[name] = np.zeros(n, dtype)
+                    continue
                 a = data[name]
                 if a.dtype != dtype or a.shape != (n, *tail):
                     raise MapError(f"{path}: array {name} has shape {a.shape} and type {a.dtype}, expected {(n, *tail)} {np.dtype(dtype)}")
@@ -139,6 +157,16 @@ def _read(path: Path) -> tuple[dict, dict, LocalFrame]:
     if not np.all(np.isfinite(columns["p_ned_m"])) or not np.all(np.isfinite(columns["info_packed"])):
         raise MapError(f"{path}: map holds non-finite positions or information")
     meta["descriptor"] = kind
+    try:
+        if meta["version"] < 4:
+            old = ([MapSource("photos", path.name, float(meta.get("georef_sigma_h_m", 0.0)))] if kind == "sift" else [FLIGHT])
+            meta["sources"] = old
+        else:
+            meta["sources"] = [MapSource.from_json(d) for d in meta["sources"]]
+    except (KeyError, TypeError, ValueError) as err:
+        raise MapError(f"{path}: bad map sources ({type(err).__name__}: {err})") from None
+    if n and int(columns["source"].max()) >= len(meta["sources"]):
+        raise MapError(f"{path}: a landmark names source {int(columns['source'].max())}, the map lists {len(meta['sources'])}")
     return meta, columns, frame
 
 
@@ -150,14 +178,43 @@ def load_map(path: Path | str) -> tuple[LandmarkMap, LocalFrame]:
         raise MapError(f"{path}: a map of {meta['descriptor']} features (built from photos, for auxgps locate); "
                        "the flight pipeline needs a map it built itself (orb)")
     try:
-        lm = LandmarkMap.from_columns(columns)
+        lm = LandmarkMap.from_columns(columns, sources=meta["sources"])
     except ValueError as err:
         raise MapError(f"{path}: {err}") from None
     return lm, frame
 
 
-def save_photo_map(path: Path | str, photo_map: PhotoMap, frame: LocalFrame) -> None:
-    """Write a map built from photos (SIFT descriptors, refined cameras, solved photos) atomically."""
+def load_maps(paths: list[Path | str], frame: LocalFrame | None = None) -> tuple[LandmarkMap, LocalFrame]:
+    """Read one flight map or several (``auxgps run --map A --map B``) into one, in ``frame`` (default: the first
+    map's): each landmark keeps its source (a prior map's name and placement error), moved into that frame
+    through geodetic coordinates. Any problem with any file is one :class:`MapError` naming it."""
+    if not paths:
+        raise ValueError("no map to load")
+    landmarks, first_frame = load_map(paths[0])
+    if frame is not None and frame != first_frame:
+        moved = LandmarkMap(descriptor_bytes=landmarks.descriptors.shape[1])
+        _merge_into(moved, landmarks, first_frame, frame, paths[0])
+        landmarks = moved
+    frame = frame or first_frame
+    for path in paths[1:]:
+        other, other_frame = load_map(path)
+        _merge_into(landmarks, other, other_frame, frame, path)
+    landmarks.sync_index()
+    return landmarks, frame
+
+
+def _merge_into(landmarks: LandmarkMap, other: LandmarkMap, other_frame: LocalFrame, frame: LocalFrame, path) -> None:
+    """Append ``other`` (in ``other_frame``) to ``landmarks`` (in ``frame``)."""
+    lat, lon, alt = other_frame.to_geodetic(other.p_ned_m[: len(other)].astype(float))
+    try:
+        landmarks.merge(other, frame.to_ned(lat_deg=lat, lon_deg=lon, alt_amsl_m=alt))
+    except ValueError as err:
+        raise MapError(f"{path}: {err}") from None
+
+
+def save_photo_map(path: Path | str, photo_map: PhotoMap, frame: LocalFrame, prior: dict | None = None) -> None:
+    """Write a map built from photos (SIFT descriptors, refined cameras, solved photos), or from an orthophoto
+    for ``auxgps locate`` (``prior``: how), atomically."""
     n = len(photo_map)
     meta = {
         "format": FORMAT,
@@ -165,6 +222,7 @@ def save_photo_map(path: Path | str, photo_map: PhotoMap, frame: LocalFrame) -> 
         "origin": _origin(frame),
         "count": n,
         "descriptor": "sift",
+        "sources": [s.to_json() for s in photo_map.sources] or [MapSource("photos", Path(path).name, photo_map.georef_sigma_h_m).to_json()],
         "cameras": {
             cid: {"width_px": c.width_px, "height_px": c.height_px, "K": c.K.tolist(), "dist": c.dist.tolist()}
             for cid, c in photo_map.cameras.items()
@@ -181,7 +239,10 @@ def save_photo_map(path: Path | str, photo_map: PhotoMap, frame: LocalFrame) -> 
         "view_cos": np.ones(n, np.float16),
         "descriptor_range_m": np.full(n, np.nan, np.float16),
         "chi2_mean": np.zeros(n, np.float16),
+        "source": (photo_map.source if photo_map.source is not None else np.zeros(n)).astype(np.uint8),
     }
+    if prior is not None:
+        meta["prior"] = prior
     _write(Path(path), meta, arrays)
 
 
@@ -214,5 +275,43 @@ def load_photo_map(path: Path | str) -> tuple[PhotoMap, LocalFrame]:
         cameras=cameras,
         georef_sigma_h_m=georef,
         photos=photos,
+        source=columns["source"],
+        sources=tuple(meta["sources"]),
     )
     return pm, frame
+
+
+def load_photo_maps(paths: list[Path | str]) -> tuple[PhotoMap, LocalFrame]:
+    """Read one photo map or several (``auxgps locate --map A --map B``: maps from photos or orthophotos) into
+    one, in the frame of the first; each point keeps its source and that source's placement error."""
+    maps = [load_photo_map(p) for p in paths]
+    if len(maps) == 1:
+        return maps[0]
+    first, frame = maps[0]
+    parts, src_idx, sources, cameras = [], [], [], {}
+    for (pm, f), path in zip(maps, paths):
+        p = pm.p_ned_m
+        if f != frame:
+            lat, lon, alt = f.to_geodetic(p)
+            p = frame.to_ned(lat_deg=lat, lon_deg=lon, alt_amsl_m=alt)
+        own = pm.sources or (MapSource("photos", Path(path).name, pm.georef_sigma_h_m),)
+        own_idx = pm.source if pm.source is not None else np.zeros(len(pm), np.uint8)
+        src_idx.append(own_idx.astype(int) + len(sources))
+        sources.extend(own)
+        parts.append((p, pm))
+        for cid, cam in pm.cameras.items():
+            cameras.setdefault(cid, cam)
+    if len(sources) > 255:
+        raise MapError(f"{len(sources)} map sources: 255 at most")
+    merged = PhotoMap(
+        p_ned_m=np.vstack([p for p, _ in parts]),
+        info_ned=np.concatenate([pm.info_ned for _, pm in parts]),
+        descriptors=np.vstack([pm.descriptors for _, pm in parts]),
+        n_views=np.concatenate([pm.n_views for _, pm in parts]),
+        cameras=cameras,
+        georef_sigma_h_m=max(s.georef_sigma_h_m for s in sources),
+        photos=first.photos,  # (the solved photos of the first map: the others are in their own frames)
+        source=np.concatenate(src_idx).astype(np.uint8),
+        sources=tuple(sources),
+    )
+    return merged, frame

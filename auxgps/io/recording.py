@@ -55,7 +55,7 @@ class Recorder:
         self.clock_offset_us = int(round((time.time() - time.monotonic()) * 1e6))
         meta = {"format": FORMAT, "version": VERSION, "clock_offset_us": self.clock_offset_us, "options": options,
                 "pipeline": pipeline, "start_map": "start_map.npz" if start_map else None}
-        if start_map:
+        if start_map and Path(start_map).resolve() != (self.folder / "start_map.npz").resolve():
             shutil.copyfile(start_map, self.folder / "start_map.npz")
         (self.folder / "recording.json").write_text(json.dumps(meta, indent=2))
         self._tlog = open(self.folder / "flight.tlog", "wb")

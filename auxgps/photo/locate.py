@@ -95,9 +95,9 @@ class PhotoLocator:
         if np.any(C[:2] < lo - margin) or np.any(C[:2] > hi + margin):
             return PhotoNoFix(f"the pose is {margin:.0f} m or more outside the map", n_inl, n_matches)
         cov = cov_C.copy()
-        cov[:2, :2] += np.eye(2) * self.map.georef_sigma_h_m**2
+        cov[:2, :2] += np.eye(2) * self.map.shared_sigma_h_m(lm[inl]) ** 2
         notes = _check_prior(prior, R, C, cfg)
-        fix = PhotoFix(C, R, cov, n_inl, n_matches, rms_px, tuple(notes))
+        fix = PhotoFix(C, R, cov, n_inl, n_matches, rms_px, tuple(notes), self.map.source_name(lm[inl]))
         if fix.accuracy_m > cfg.max_accuracy_m:
             return PhotoNoFix(f"too uncertain: {fix.accuracy_m:.1f} m one sigma", n_inl, n_matches)
         return fix

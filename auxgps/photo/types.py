@@ -70,6 +70,9 @@ class PhotoMap:
     georef_sigma_h_m : one-sigma horizontal error of the whole map's placement on Earth, m (per axis)
     photos : the solved map photos
     messages : what happened to individual photos (left out, metadata found wrong), one line each
+    source, sources : for a map of several sources (photos, orthophotos: ``auxgps locate --map A --map B``),
+        each point's source (M,) as an index into ``sources`` (:class:`MapSource`, each with its own placement
+        error); None and (): one source, of ``georef_sigma_h_m`` (a map being built)
     """
 
     p_ned_m: np.ndarray
@@ -80,16 +83,34 @@ class PhotoMap:
     georef_sigma_h_m: float
     photos: tuple
     messages: tuple = ()
+    source: np.ndarray | None = None
+    sources: tuple = ()
 
     def __len__(self) -> int:
         return len(self.p_ned_m)
+
+    def shared_sigma_h_m(self, idx: np.ndarray) -> float:
+        """The horizontal placement error points ``idx`` share through their sources, m (one sigma; variances
+        weighed by each source's share of them)."""
+        if self.source is None or not len(idx):
+            return self.georef_sigma_h_m
+        counts = np.bincount(self.source[idx], minlength=len(self.sources))
+        var = np.array([s.georef_sigma_h_m**2 for s in self.sources])
+        return float(np.sqrt(counts @ var / counts.sum()))
+
+    def source_name(self, idx: np.ndarray) -> str:
+        """The name of the source most of points ``idx`` come from ("" for a map being built)."""
+        if self.source is None or not len(idx) or not self.sources:
+            return ""
+        return self.sources[int(np.bincount(self.source[idx]).argmax())].name
 
 
 @dataclass(frozen=True)
 class PhotoFix:
     """A located photo: camera position ``p_cam_in_ned_m`` (3,), attitude ``R_ned_cam`` (3, 3), position
     covariance ``cov_ned_m2`` (3, 3) (fit and map together), inlier count, reprojection RMS (px) and notes on
-    where the photo's own metadata disagrees."""
+    where the photo's own metadata disagrees; ``map_source``: the map most of its inliers come from (a map of
+    several sources), else ""."""
 
     p_cam_in_ned_m: np.ndarray
     R_ned_cam: np.ndarray
@@ -98,6 +119,7 @@ class PhotoFix:
     n_matches: int
     rms_px: float
     notes: tuple = ()
+    map_source: str = ""
 
     @property
     def accuracy_m(self) -> float:

@@ -22,7 +22,7 @@ import numpy as np
 
 from auxgps.core.camera import CameraPose, PinholeCamera
 from auxgps.core.lattice import node_axis, upsample
-from auxgps.sim.georaster import GeoRaster, RasterLevel
+from auxgps.io.georaster import GeoRaster, RasterLevel
 
 #: Output pixels (or grid cells) between the nodes where the reprojection is computed exactly.
 NODE_STEP = 16

@@ -11,7 +11,7 @@ World file keys (all lengths in metres, angles in degrees, colours BGR 0-255 or 
     description: free text (optional)
 
 An ``orthophoto`` is a georeferenced GeoTIFF in any CRS (1, 3 or 4 bands of uint8), placed in the local NED
-frame by reprojection (:mod:`auxgps.sim.georaster`); ground off it is black. The world origin must lie on it.
+frame by reprojection (:mod:`auxgps.io.georaster`); ground off it is black. The world origin must lie on it.
 Without a ``dsm`` the ground is the plane ``down = 0`` (the origin's tangent plane), as for the other grounds.
 
 A ``dsm`` is a height model GeoTIFF in any CRS, band 1 in metres, in the same vertical datum as the origin's
@@ -38,7 +38,7 @@ from pydantic.dataclasses import dataclass
 from auxgps.config import _STRICT, parse_as, read_yaml
 from auxgps.core.geometry import LocalFrame
 from auxgps.errors import ConfigError
-from auxgps.sim.georaster import GeoRaster
+from auxgps.io.georaster import GeoRaster
 
 COLOR_NAMES_BGR: dict[str, tuple[int, int, int]] = {
     "black": (20, 20, 20),

@@ -1,6 +1,6 @@
 """Georeferenced rasters for simulated worlds: an orthophoto or a height model (DSM) GeoTIFF, in any CRS.
 
-Simulator I/O at the edge: rasterio opens the file and its overview levels, reads windows of them in aligned
+I/O at the edge, for the simulator's renderer (prior maps read their orthophotos through auxgps/io/orthophoto.py): rasterio opens the file and its overview levels, reads windows of them in aligned
 blocks kept in a small cache (a flight over a large raster does not read the file again for every frame), and
 turns map coordinates into pixel coordinates with each level's own affine transform. Points of the world's
 local NED frame reach the raster's CRS through pymap3d (NED -> WGS84 geodetic) and rasterio.warp.transform
