@@ -4,8 +4,9 @@ The orthophoto is read tile by tile at the build's ground sample distance (``--g
 file), each tile's features detected (:mod:`auxgps.core.prior_map`): ORB with the flight pipeline's own detector
 for ``auxgps run``, or SIFT as ``auxgps locate`` uses them. Every keypoint is placed where its pixel lies:
 pixel -> the file's CRS (affine) -> WGS84 (PROJ) -> the map's local NED frame, at the height of the height model
-(``--dsm``), else of a flat ground: ``--ground-alt-m``, else the height auxgps ortho build wrote into the file,
-else 0 m of the vertical datum (said so: heights above home are then taken from where the flight takes off).
+(``--dsm``), else of a flat ground: ``--ground-alt-m`` (level), else the ground plane auxgps ortho build wrote
+into the file (its height at the centre and its slope), else 0 m of the vertical datum (said so: heights above
+home are then taken from where the flight takes off).
 
 The map's origin is the orthophoto's centre on that ground. Its one placement error (``--georef-sigma-m``,
 else the one auxgps ortho build wrote into the file, else :data:`DEFAULT_GEOREF_SIGMA_M`) is stated once,
@@ -23,7 +24,7 @@ import numpy as np
 from auxgps.core.geometry import LocalFrame
 from auxgps.core.prior_map import MapSource, PriorMapModel, keep_inside, landmark_columns, tile_grid
 from auxgps.errors import MapError
-from auxgps.io.orthophoto import TAG_GEOREF_SIGMA, TAG_GROUND_ALT, HeightModel, Orthophoto
+from auxgps.io.orthophoto import TAG_GEOREF_SIGMA, TAG_GROUND_ALT, TAG_GROUND_SLOPE, HeightModel, Orthophoto
 
 #: One-sigma placement error of an orthophoto that does not state its own, m. Public aerial mosaics are commonly
 #: specified at a few metres (95 %) and one built from a consumer-GPS survey sits a metre or two off; 2 m is
@@ -88,11 +89,14 @@ def build_prior_map(ortho_path: Path | str, *, descriptor: str = "orb", pipeline
         elif ground_alt_amsl_m is not None:
             heights, centre_alt = "plane (--ground-alt-m)", float(ground_alt_amsl_m)
         elif (tag := ortho.tag_float(TAG_GROUND_ALT)) is not None:
-            heights, centre_alt = "plane (the orthophoto's own ground height)", tag
+            heights, centre_alt = "plane (the orthophoto's own ground plane)", tag
+            slope_ne = ortho.tag_float(TAG_GROUND_SLOPE, 2) or (0.0, 0.0)
         else:
             heights, centre_alt = "datum 0 m", 0.0
             messages.append("no height model and no ground height: landmarks on flat ground at 0 m of the datum; "
                             "heights above home are taken from where the flight takes off (--dsm or --ground-alt-m to say)")
+        if heights != "plane (the orthophoto's own ground plane)":
+            slope_ne = (0.0, 0.0)
         frame = LocalFrame(ortho.centre_lat_deg, ortho.centre_lon_deg, centre_alt)
         model = PriorMapModel(gsd_m=build_gsd, height_sigma_m=0.5 if dsm is not None else 1.0)
 
@@ -134,7 +138,11 @@ def build_prior_map(ortho_path: Path | str, *, descriptor: str = "orb", pipeline
             if not np.any(keep):
                 continue
             lat, lon = ortho.geodetic_of_build_px(c0 - pad, r0 - pad, uv[keep], factor)
-            alt = dsm.alt_amsl_m(lat, lon) if dsm is not None else np.full(len(lat), centre_alt)
+            if dsm is not None:
+                alt = dsm.alt_amsl_m(lat, lon)
+            else:  # the plane: its height at the centre, risen by its slope over the north/east from there
+                ne = frame.to_ned(lat_deg=lat, lon_deg=lon, alt_amsl_m=np.full(len(lat), centre_alt))
+                alt = centre_alt + slope_ne[0] * ne[..., 0] + slope_ne[1] * ne[..., 1]
             ok = np.isfinite(alt)
             p_ned = frame.to_ned(lat_deg=lat[ok], lon_deg=lon[ok], alt_amsl_m=alt[ok])
             desc_parts.append(desc[keep][ok])
@@ -149,7 +157,7 @@ def build_prior_map(ortho_path: Path | str, *, descriptor: str = "orb", pipeline
                                    np.vstack(p_parts), np.concatenate(scale_parts), model, focal_px)
         source = MapSource("orthophoto", Path(ortho_path).name, float(georef))
         prior = {"orthophoto": str(ortho_path), "crs": ortho.crs.to_string(), "file_gsd_m": ortho.gsd_m, "gsd_m": build_gsd,
-                 "heights": heights, "dsm": None if dsm_path is None else str(dsm_path), "descriptor": descriptor,
+                 "heights": heights, "ground_slope_ne": list(slope_ne), "dsm": None if dsm_path is None else str(dsm_path), "descriptor": descriptor,
                  "focal_px": None if descriptor != "orb" else focal_px, "georef_sigma_h_m": float(georef)}
         return PriorMapReport(columns, frame, source, descriptor, build_gsd, heights, len(grid), prior, messages)
     finally:

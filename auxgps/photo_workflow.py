@@ -251,7 +251,7 @@ def build_orthophoto(files: list[Path], cam_cfg: PhotoCameraConfig | None, cfg: 
 
     from auxgps.core.camera import CameraPose
     from auxgps.io.geotiff import utm_crs, write_rgb_geotiff
-    from auxgps.io.orthophoto import TAG_GEOREF_SIGMA, TAG_GROUND_ALT
+    from auxgps.io.orthophoto import TAG_GEOREF_SIGMA, TAG_GROUND_ALT, TAG_GROUND_SLOPE
     from auxgps.io.photos import load_rgb
     from auxgps.photo.ortho import Mosaic, OrthoPhoto, fit_ground_plane, footprint_ne
 
@@ -323,10 +323,11 @@ def build_orthophoto(files: list[Path], cam_cfg: PhotoCameraConfig | None, cfg: 
                 yield row0, col0, rgb, seen
 
     # What a prior map built from this orthophoto needs to know of it (auxgps/io/orthophoto.py reads them back):
-    # its placement error (the photo block's on its GPS) and the ground plane's height under its centre.
+    # its placement error (the photo block's on its GPS), the ground plane's height under its centre and its slope.
     n_c, e_c = ne_of_colrow(np.array(width / 2), np.array(height / 2))
     tags = {TAG_GEOREF_SIGMA: f"{photo_map.georef_sigma_h_m:.3f}",
-            TAG_GROUND_ALT: f"{frame.alt_amsl_m - float(plane.down_m(n_c, e_c)):.2f}"}
+            TAG_GROUND_ALT: f"{frame.alt_amsl_m - float(plane.down_m(n_c, e_c)):.2f}",
+            TAG_GROUND_SLOPE: f"{-plane.a:.6f} {-plane.b:.6f}"}
     write_rgb_geotiff(out, crs, transform, width, height, tiles(), tags=tags)
     seams = mosaic.seam_offsets(gsd_m)
     report = OrthoReport(out, crs.to_string(), gsd_m, width, height, plane, [p.name for p in ortho_photos if p.name not in mosaic.left_out],

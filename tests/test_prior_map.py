@@ -168,6 +168,14 @@ def test_the_placement_error_is_the_sources_not_each_landmarks(tmp_path, squares
     r2 = build_prior_map(tagged, pipeline=PipelineConfig())
     assert r2.source.georef_sigma_h_m == 0.7 and r2.frame.alt_amsl_m == 213.0
     assert build_prior_map(tagged, pipeline=PipelineConfig(), georef_sigma_m=0.2).source.georef_sigma_h_m == 0.2
+    # The ground plane auxgps ortho build fitted, with its slope: heights rise with it from the centre.
+    sloped = write_ortho(tmp_path / "s.tif", UTM, squares, tags={"AUXGPS_GROUND_ALT_AMSL_M": "213", "AUXGPS_GROUND_SLOPE": "0.02 -0.05"})
+    r3 = build_prior_map(sloped, pipeline=PipelineConfig())
+    p = r3.columns["p_ned_m"].astype(float)
+    assert np.allclose(-p[:, 2], 0.02 * p[:, 0] - 0.05 * p[:, 1], atol=0.01)
+    bad = write_ortho(tmp_path / "b.tif", UTM, squares, tags={"AUXGPS_GROUND_ALT_AMSL_M": "213", "AUXGPS_GROUND_SLOPE": "0.02"})
+    with pytest.raises(MapError, match="AUXGPS_GROUND_SLOPE"):
+        build_prior_map(bad, pipeline=PipelineConfig())
 
 
 def _cli(*args):

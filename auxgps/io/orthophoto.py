@@ -10,8 +10,9 @@ pixel (row 0, col 0) is at (0.5, 0.5). Build pixel (col, row) of a window starti
 is at file pixel ``(col0 + col + 0.5) * k`` along columns, with ``k`` file pixels per build pixel.
 
 Tags auxgps writes into the orthophotos it builds (``auxgps ortho build``) and reads back here:
-``AUXGPS_GEOREF_SIGMA_H_M`` (the block's placement error, one sigma, m) and ``AUXGPS_GROUND_ALT_AMSL_M`` (the
-fitted ground plane's height under the orthophoto's centre, m above mean sea level).
+``AUXGPS_GEOREF_SIGMA_H_M`` (the block's placement error, one sigma, m), ``AUXGPS_GROUND_ALT_AMSL_M`` (the
+fitted ground plane's height under the orthophoto's centre, m above mean sea level) and ``AUXGPS_GROUND_SLOPE``
+(that plane's rise northward and eastward, m per m, two numbers).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from auxgps.errors import MapError
 _WGS84 = CRS.from_epsg(4326)
 TAG_GEOREF_SIGMA = "AUXGPS_GEOREF_SIGMA_H_M"
 TAG_GROUND_ALT = "AUXGPS_GROUND_ALT_AMSL_M"
+TAG_GROUND_SLOPE = "AUXGPS_GROUND_SLOPE"
 
 
 def _open(path: Path, what: str):
@@ -91,12 +93,18 @@ class Orthophoto:
     def close(self) -> None:
         self._ds.close()
 
-    def tag_float(self, name: str) -> float | None:
+    def tag_float(self, name: str, count: int = 1):
+        """A numeric tag (``count`` numbers: a tuple), None when the file lacks it."""
         v = self.tags.get(name)
+        if v is None:
+            return None
         try:
-            return float(v) if v is not None else None
+            nums = tuple(float(x) for x in v.split())
         except ValueError:
-            raise MapError(f"{self.what}: {self.path}: tag {name}={v!r} is not a number") from None
+            nums = ()
+        if len(nums) != count or not all(np.isfinite(nums)):
+            raise MapError(f"{self.what}: {self.path}: tag {name}={v!r} is not {count} number{'s' if count > 1 else ''}")
+        return nums[0] if count == 1 else nums
 
     # -- coordinates --------------------------------------------------------------------------------------
 
