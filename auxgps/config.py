@@ -150,6 +150,9 @@ class FusionConfig:
     # The error visual fixes share for seconds (attitude error, map error): one sigma and correlation time.
     fix_bias_sigma_m: Positive = 0.1
     fix_bias_tau_s: Positive = 10.0
+    # A prior map's (an orthophoto's) placement error is not one offset: two mosaics of one field from one day
+    # differ by a scale and a turn as much as by a shift (docs/prior_maps.md). It changes over this distance flown.
+    prior_map_offset_length_m: Positive = 100.0
     # ... which grows with the height (its sources are angles): 0.6 % of it, over fix_bias_sigma_m from 17 m up. At
     # 40 m over the Seneca orthophoto single fixes are 0.26 m RMS (0.65 %): a constant 0.1 m made the filter
     # over-confident there (NEES 3.1) and a self-check of clean GPS1 call it dragged.

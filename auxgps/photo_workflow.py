@@ -323,13 +323,17 @@ def build_orthophoto(files: list[Path], cam_cfg: PhotoCameraConfig | None, cfg: 
                 yield row0, col0, rgb, seen
 
     # What a prior map built from this orthophoto needs to know of it (auxgps/io/orthophoto.py reads them back):
-    # its placement error (the photo block's on its GPS), the ground plane's height under its centre and its slope.
+    # its placement error, the ground plane's height under its centre and its slope. The placement error is the
+    # photo block's on its GPS and, in quadrature, the 95th percentile of the seams between neighbouring photos:
+    # how far the mosaic disagrees with itself is how far it may be off in places (two Seneca mosaics of the
+    # same field, 20 minutes apart, differ by a 2 % scale as well as a shift: docs/prior_maps.md).
+    seams = mosaic.seam_offsets(gsd_m)
+    seam_p95_m = float(np.percentile([sm.offset_m for sm in seams], 95)) if seams else 0.0
     n_c, e_c = ne_of_colrow(np.array(width / 2), np.array(height / 2))
-    tags = {TAG_GEOREF_SIGMA: f"{photo_map.georef_sigma_h_m:.3f}",
+    tags = {TAG_GEOREF_SIGMA: f"{float(np.hypot(photo_map.georef_sigma_h_m, seam_p95_m)):.3f}",
             TAG_GROUND_ALT: f"{frame.alt_amsl_m - float(plane.down_m(n_c, e_c)):.2f}",
             TAG_GROUND_SLOPE: f"{-plane.a:.6f} {-plane.b:.6f}"}
     write_rgb_geotiff(out, crs, transform, width, height, tiles(), tags=tags)
-    seams = mosaic.seam_offsets(gsd_m)
     report = OrthoReport(out, crs.to_string(), gsd_m, width, height, plane, [p.name for p in ortho_photos if p.name not in mosaic.left_out],
                          seams, messages)
     out.with_suffix(".json").write_text(json.dumps(report.to_json(), indent=1) + "\n")

@@ -10,11 +10,13 @@ and the map's own errors. Fusing twenty fixes a second as if their errors were i
 believe itself to a centimetre, gate out good fixes and report an accuracy that the truth does not bear out; as a
 first-order Gauss-Markov state it keeps the reported accuracy honest. GPS1 readings do not share it.
 
-A prior map (an orthophoto's) is placed on Earth only as well as the orthophoto is: one offset, the same for all
-its landmarks and for as long as the flight uses them. It is a random constant of the map's stated placement
-error (``map_offset_sigma_m``), seen by a fix in the share of its inliers that are the prior map's: the filter
-learns it from the first prior-map fixes after GPS1 is lost (while the IMU still holds the position GPS1 gave),
-and never makes the fixes surer than it.
+A prior map (an orthophoto's) is placed on Earth only as well as the orthophoto is: an offset shared by its
+landmarks near each other, which changes across the map (a mosaic's scale and turn are off as well as its
+place). It is a state of the map's stated placement error (``map_offset_sigma_m``), correlated over
+``prior_map_offset_length_m`` of distance flown (first-order Gauss-Markov in distance), seen by a fix in the
+share of its inliers that are the prior map's: the filter learns it from the first prior-map fixes after GPS1 is
+lost (while the IMU still holds the position GPS1 gave), forgets it as the vehicle flies on, and never makes
+the fixes surer than it.
 
 Every input is stamped with the time it describes, and any may arrive late (a visual fix a frame's processing
 after its capture, GPS1 its receiver's lag after its measurement). The filter keeps a short history of every step
@@ -285,6 +287,8 @@ class NavFilter:
         B[_I3 + 3, _I3] = dt
         decay = np.exp(-dt / cfg.fix_bias_tau_s)
         F[9, 9] = F[10, 10] = decay
+        map_decay = self._map_offset_decay(dt)
+        F[11, 11] = F[12, 12] = map_decay
         u = (R @ imu.f_body_m_s2 + GRAVITY_NED_M_S2).reshape(3, 1)
         q = cfg.accel_noise_m_s2_sqrt_hz**2  # white acceleration noise, continuous-time
         Q = np.zeros((_N, _N))
@@ -293,6 +297,7 @@ class NavFilter:
         Q[_I3 + 3, _I3 + 3] = q * dt
         Q[_I3 + 6, _I3 + 6] = cfg.accel_bias_walk_m_s2_sqrt_s**2 * dt
         Q[9, 9] = Q[10, 10] = self.fix_bias_sigma_m**2 * (1.0 - decay**2)
+        Q[11, 11] = Q[12, 12] = self.map_offset_sigma_m**2 * (1.0 - map_decay**2)
         self._ekf.F, self._ekf.B, self._ekf.Q = F, B, Q
         self._ekf.predict(u)
         self.t_s = imu.t_s
@@ -312,6 +317,9 @@ class NavFilter:
         Q[_I3 + 3, _I3 + 3] = a2 * dt**2
         Q[_I3 + 6, _I3 + 6] = self.cfg.accel_bias_walk_m_s2_sqrt_s**2 * dt
         Q[9, 9] = Q[10, 10] = self.fix_bias_sigma_m**2 * (1.0 - decay**2)
+        map_decay = self._map_offset_decay(dt)
+        F[11, 11] = F[12, 12] = map_decay
+        Q[11, 11] = Q[12, 12] = self.map_offset_sigma_m**2 * (1.0 - map_decay**2)
         self._ekf.x = F @ self._ekf.x
         self._ekf.P = F @ self._ekf.P @ F.T + Q
 
@@ -378,6 +386,12 @@ class NavFilter:
             if d @ np.linalg.solve(S, d) > cfg.gate_chi2:
                 return False
         return True
+
+    def _map_offset_decay(self, dt: float) -> float:
+        """How much of the prior map's offset is still the same after ``dt`` s at the filter's ground speed."""
+        if self.map_offset_sigma_m <= 0:
+            return 1.0
+        return float(np.exp(-np.hypot(self._ekf.x[3, 0], self._ekf.x[4, 0]) * dt / self.cfg.prior_map_offset_length_m))
 
     @property
     def fix_bias_sigma_m(self) -> float:
