@@ -319,3 +319,49 @@ def test_without_reinit_a_run_of_rejected_fixes_is_reported_and_the_filter_stays
     g = NavFilter(cfg, 0.0, np.zeros(3), np.zeros(3), 0.05, 0.05)
     decisions = [g.update_position(0.1 * k, np.array([3.0, 0.0]), np.eye(2) * 0.01) for k in range(1, 12)]
     assert any(d.rejected_run for d in decisions) and g.n_reinit >= 1 and abs(g.estimate().p_ned_m[0] - 3.0) < 0.5
+
+
+def _prior_map_filter(sigma_map=2.0):
+    return NavFilter(FusionConfig(), 0.0, np.zeros(3), np.zeros(3), 0.3, 0.1, map_offset_sigma_m=sigma_map)
+
+
+def test_a_prior_maps_offset_is_learnt_while_gps1_holds_and_then_carried():
+    """Prior-map fixes 1.5 m north and 1 m west of where GPS1 holds the vehicle: the offset is learnt, the
+    position stays GPS1's; once GPS1 is gone, a prior-map fix at the same offset puts the vehicle where it is."""
+    rng = np.random.default_rng(4)
+    f = _prior_map_filter()
+    offset = np.array([1.5, -1.0])
+    t = 0.0
+    for k in range(200):
+        t = 0.01 * (k + 1)
+        f.propagate(hover(t))
+        if k % 10 == 9:
+            f.update_position(t, rng.normal(0, 0.3, 2), np.eye(2) * 0.3**2)  # GPS1 at the origin
+            f.learn_map_offset(t, offset + rng.normal(0, 0.2, 2), np.eye(2) * 0.2**2, 1.0)
+    b, cov_b = f.map_offset()
+    assert np.allclose(b, offset, atol=0.35), b
+    assert np.sqrt(np.trace(cov_b) / 2) < 0.6  # learnt from 2 m
+    assert np.linalg.norm(f.estimate().p_ned_m[:2]) < 0.3  # the position is GPS1's, not pulled to the fixes
+    # A fix that disagrees with what was learnt (a wrong match) teaches nothing.
+    before = f.map_offset()[0]
+    f.learn_map_offset(t, offset + np.array([8.0, 0.0]), np.eye(2) * 0.2**2, 1.0)
+    assert np.allclose(f.map_offset()[0], before)
+    # GPS1 gone: prior-map fixes still at the offset; the vehicle is put at the origin, not 1.8 m off.
+    for k in range(100):
+        t += 0.01
+        f.propagate(hover(t))
+        if k % 10 == 9:
+            f.update_position(t, offset + rng.normal(0, 0.2, 2), np.eye(2) * 0.2**2, visual=True, prior_share=1.0)
+    assert np.linalg.norm(f.estimate().p_ned_m[:2]) < 0.5
+
+
+def test_a_prior_maps_offset_is_forgotten_over_distance():
+    """Flown 300 m at 10 m/s (three correlation lengths), a learnt offset's uncertainty is back near the map's."""
+    f = _prior_map_filter()
+    f._ekf.P[11:13, 11:13] = np.eye(2) * 0.1**2
+    f._ekf.x[3, 0] = 10.0
+    f._ekf.P[3, 3] = 0.01
+    for k in range(3000):
+        f.propagate(ImuSample(0.01 * (k + 1), HOVER_F.copy(), LEVEL))
+    sigma_b = np.sqrt(f.map_offset()[1][0, 0])
+    assert 1.8 < sigma_b <= 2.0 + 1e-9

@@ -24,7 +24,7 @@ else: it is dropped, said so once, and the flight maps afresh.
 Prior maps (from an orthophoto, ``auxgps map build --orthophoto``) are loaded like a flight's map and used to
 position, never refined: the flight maps its own landmarks beside them, and where it has enough of its own
 (``positioning.own_landmarks_take_over``), positioning leaves the prior map's out. A fix says which map it used;
-the filter carries the prior map's placement error as one offset.
+the filter carries the prior map's placement error as an offset state that changes over distance flown.
 
 Heights: ``alt_above_origin_m`` is above the local frame's origin (the map's, or the ground below GPS1's first
 fix); the autopilot reports heights above home, and the two differ by home's height above the origin.
@@ -218,7 +218,7 @@ class Estimator:
         self.last_correction_t_s: float | None = None
         self._last_disagreement: str | None = None
         self._map_loaded = landmarks is not None and len(landmarks) > 0  # not yet checked against GPS1
-        # The placement error of the prior maps (orthophotos) loaded: one offset the filter carries for them.
+        # The placement error of the prior maps (orthophotos) loaded, the largest: the filter's offset state for them.
         self._map_offset_sigma_m = max((src.georef_sigma_h_m for src in self.landmarks.sources[1:]), default=0.0)
         self._acquiring: list[Fix] = []  # fixes located without a prior, while there is no filter
         self.frame_check = FrameCheck()
@@ -488,10 +488,16 @@ class Estimator:
             est = self.filter.estimate_at(res.t_s)
             d_ne = res.p_ned_m[:2] - est.p_ned_m[:2]
             d = float(np.linalg.norm(d_ne))
-            shared_m2 = self.filter.fix_bias_sigma_m**2 + (res.prior_share * self._map_offset_sigma_m) ** 2
-            drag = self.supervisor.visual_check(res.t_s, d_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2], np.eye(2) * shared_m2)
+            # A prior map's fix is off by the map's offset: checked against GPS1 less the offset the filter has
+            # learnt so far, within what it does not know of it; and, if GPS1 holds, teaching it more.
+            s = res.prior_share
+            b_ne, cov_b = self.filter.map_offset()
+            shared = np.eye(2) * self.filter.fix_bias_sigma_m**2 + s**2 * cov_b
+            drag = self.supervisor.visual_check(res.t_s, d_ne - s * b_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2], shared)
             if drag:
                 common["note"] = _joined(common["note"], drag, self._undo_unverified(res.t_s))
+            elif s > 0:
+                self.filter.learn_map_offset(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2], s)
             return FrameResult(t, "self-check", f"{d:.3f} m", self_check_m=d, **common)
         cov_ne = res.cov_ned_m2[:2, :2]
         amb = self._ambiguous

@@ -205,6 +205,34 @@ class NavFilter:
         self._retake(later)
         return self._decide(decision)
 
+    def learn_map_offset(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray, prior_share: float) -> bool:
+        """While GPS1 holds the position: a visual fix with ``prior_share`` of its inliers from the prior map says
+        how far the prior map is off here. Updates the prior-map offset alone (the position stays GPS1's): its
+        innovation against the filter's position, the fix's, the position's and the shared fix error's variance."""
+        share = float(np.clip(prior_share, 0.0, 1.0))
+        if self.map_offset_sigma_m <= 0 or share <= 0 or not (np.all(np.isfinite(p_ne_m)) and np.all(np.isfinite(cov_ne_m2))):
+            return False
+        later = self._rewind(float(t_s))
+        if later is None:
+            return False
+        self._take("offset", float(t_s), (np.asarray(p_ne_m, float).reshape(2), np.asarray(cov_ne_m2, float).reshape(2, 2), share))
+        self._retake(later)
+        return True
+
+    def _learn_offset(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray, share: float) -> None:
+        x, P = self._ekf.x, self._ekf.P
+        dt = t_s - self.t_s
+        p_now = x[0:2, 0] + x[3:5, 0] * dt
+        y = p_ne_m - p_now - x[9:11, 0] - share * x[11:13, 0]
+        Pb = P[11:13, 11:13]
+        S = share**2 * Pb + cov_ne_m2 + P[0:2, 0:2] + P[9:11, 9:11]
+        if share * np.sqrt(np.trace(Pb) / 2.0) < 0.05 or y @ np.linalg.solve(S, y) > self.cfg.gate_chi2:
+            return  # nothing left to learn, or a fix that disagrees (a wrong match, a drag): not taken
+        K = share * Pb @ np.linalg.inv(S)
+        x[11:13, 0] += K @ y
+        P[11:13, 11:13] = Pb - share * K @ Pb
+        P[11:13, :11] = P[:11, 11:13].T  # cross terms kept as they were (the position is GPS1's)
+
     def update_altitude(self, t_s: float, alt_above_origin_m: float, sigma_m: float) -> bool:
         """Fuse a barometric height above the origin (m) measured at ``t_s`` (up to ``history_s`` ago)."""
         t_s = float(t_s)
@@ -220,6 +248,10 @@ class NavFilter:
         return True
 
     # -- outputs -------------------------------------------------------------------------------------------
+
+    def map_offset(self) -> tuple[np.ndarray, np.ndarray]:
+        """The prior map's offset as the filter holds it: north/east (2,) m and covariance (2, 2) m^2."""
+        return self._ekf.x[11:13, 0].copy(), self._ekf.P[11:13, 11:13].copy()
 
     def estimate(self) -> FusedEstimate:
         x, P = self._ekf.x[:, 0], self._ekf.P
@@ -355,6 +387,8 @@ class NavFilter:
             self._ekf.update(np.array([[-alt_above_origin_m]]), lambda x: H, lambda x: H @ x, R=np.array([[sigma_m**2]]))
         elif kind == "reinit":
             self._reinitialise(*data)
+        elif kind == "offset":
+            self._learn_offset(t_s, *data)
         else:
             raise ValueError(f"unknown filter step {kind!r}")
         self._history.append(_Step(t_s, self.t_s, kind, data, self._ekf.x.copy(), self._ekf.P.copy()))
