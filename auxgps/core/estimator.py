@@ -452,7 +452,12 @@ class Estimator:
         with sw("matching"):
             old_enough_s = job.frame.t_s - self.supervisor.cfg.self_check_age_s if job.mapping else None
             cand = self.localiser.candidates(job.alt_above_origin_m, job.prior, old_enough_s)
-        scale = 1.0 if job.mapping else self.localiser.detection_scale(job.alt_above_origin_m, job.prior, cand)
+        # The flight's own landmarks and a prior map's are not mixed in one reading (the prior map's are metres off
+        # together, the flight's centimetres): its own first, the prior map's where its own give no fix.
+        prior_cand = cand[self.landmarks.source[cand] != 0]
+        if len(prior_cand):
+            cand = cand[self.landmarks.source[cand] == 0]
+        scale = 1.0 if job.mapping else self.localiser.detection_scale(job.alt_above_origin_m, job.prior, cand if len(cand) else prior_cand)
         with sw("detection"):
             feats = self.detector.detect(job.frame.image_bgr, job.R_ned_body @ self.R_body_cam, scale)
         mapped = None
@@ -460,7 +465,18 @@ class Estimator:
         if job.heading is not None:
             heading_sigma = float(np.hypot(np.deg2rad(self.cfg.noise.heading_deg), job.heading.sigma_rad))
         with sw("locating"):
-            located = self.localiser.locate(feats, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior, cand, heading_sigma)
+            located = self.localiser.locate(feats, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior, cand, heading_sigma) \
+                if len(cand) or not len(prior_cand) else None
+            if len(prior_cand) and not isinstance(located, Fix):
+                prior_scale = 1.0 if job.mapping else self.localiser.detection_scale(job.alt_above_origin_m, job.prior, prior_cand)
+                prior_feats = feats
+                if abs(np.log(prior_scale / scale)) > np.log(self.cfg.detector.scale_factor):  # another scale: detected again
+                    with sw("detection"):
+                        prior_feats = self.detector.detect(job.frame.image_bgr, job.R_ned_body @ self.R_body_cam, prior_scale)
+                on_prior = self.localiser.locate(prior_feats, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior,
+                                                 prior_cand, heading_sigma)
+                if located is None or isinstance(on_prior, Fix):
+                    located = on_prior
         if job.mapping:
             with sw("mapping"):
                 mapped = self.mapper.process(feats, NavSample(job.frame.t_s, job.p_gps_ned_m, job.alt_above_origin_m, job.R_ned_body))
