@@ -50,7 +50,7 @@ class PriorMapReport:
     source: MapSource
     descriptor: str
     gsd_m: float
-    heights: str  # "dsm", "plane (--ground-alt-m)", "plane (orthophoto tag)", "datum 0 m"
+    heights: str  # "dsm", "plane (--ground-alt-m)", "plane (the orthophoto's own ground plane)", "datum 0 m"
     tiles: int
     prior: dict = field(default_factory=dict)
     messages: list[str] = field(default_factory=list)
@@ -80,7 +80,8 @@ def build_prior_map(ortho_path: Path | str, *, descriptor: str = "orb", pipeline
         if georef is None:
             georef = DEFAULT_GEOREF_SIGMA_M
             messages.append(f"the orthophoto states no placement error: {georef:g} m one sigma assumed (--georef-sigma-m)")
-        # The ground: a height model, else a flat ground at a stated height.
+        # The ground: a height model, else a flat ground at a stated height (level unless the file gives its slope).
+        slope_ne = (0.0, 0.0)
         if dsm is not None:
             heights = "dsm"
             centre_alt = float(dsm.alt_amsl_m(np.array([ortho.centre_lat_deg]), np.array([ortho.centre_lon_deg]))[0])
@@ -95,8 +96,6 @@ def build_prior_map(ortho_path: Path | str, *, descriptor: str = "orb", pipeline
             heights, centre_alt = "datum 0 m", 0.0
             messages.append("no height model and no ground height: landmarks on flat ground at 0 m of the datum; "
                             "heights above home are taken from where the flight takes off (--dsm or --ground-alt-m to say)")
-        if heights != "plane (the orthophoto's own ground plane)":
-            slope_ne = (0.0, 0.0)
         frame = LocalFrame(ortho.centre_lat_deg, ortho.centre_lon_deg, centre_alt)
         model = PriorMapModel(gsd_m=build_gsd, height_sigma_m=0.5 if dsm is not None else 1.0)
 
@@ -150,11 +149,9 @@ def build_prior_map(ortho_path: Path | str, *, descriptor: str = "orb", pipeline
             scale_parts.append(level_scale[keep][ok])
             if progress is not None and (k % 20 == 0 or k == len(grid) - 1):
                 progress(f"tile {k + 1} of {len(grid)}: {sum(len(p) for p in p_parts)} landmarks")
-        n_bytes = 32 if descriptor == "orb" else 128
         if not p_parts:
             raise MapError(f"--orthophoto {ortho_path}: no features found (blank, or all outside its coverage mask)")
-        columns = landmark_columns(np.vstack(desc_parts) if desc_parts else np.zeros((0, n_bytes), np.uint8),
-                                   np.vstack(p_parts), np.concatenate(scale_parts), model, focal_px)
+        columns = landmark_columns(np.vstack(desc_parts), np.vstack(p_parts), np.concatenate(scale_parts), model, focal_px)
         source = MapSource("orthophoto", Path(ortho_path).name, float(georef))
         prior = {"orthophoto": str(ortho_path), "crs": ortho.crs.to_string(), "file_gsd_m": ortho.gsd_m, "gsd_m": build_gsd,
                  "heights": heights, "ground_slope_ne": list(slope_ne), "dsm": None if dsm_path is None else str(dsm_path), "descriptor": descriptor,
