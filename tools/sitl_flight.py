@@ -147,6 +147,26 @@ def lag_correlation(t_s: np.ndarray, err_ne_m: np.ndarray, lags_s=(0.1, 1.0, 4.0
     return out
 
 
+def timeline(fix_rows: list, sent_rows: list, failed_at_mono: float, delay_s: float, scored: dict, bin_s: float = 20.0) -> list:
+    """What auxgps did after the failure, every ``bin_s`` (to tell a failed flight's story from its JSON alone):
+    per bin, the visual fixes accepted and refused, the most frequent reason a frame gave none, the share of
+    GPS_INPUT sent with a 3D fix, and the largest error and sigma of those (``scored``: time -> (error, sigma))."""
+    out = []
+    t_end = max([float(r["t_s"]) for r in sent_rows] + [failed_at_mono])
+    for t0 in np.arange(failed_at_mono, t_end, bin_s):
+        fx = [r for r in fix_rows if t0 <= float(r["t_s"]) < t0 + bin_s]
+        sent = [r for r in sent_rows if t0 <= float(r["t_s"]) - delay_s < t0 + bin_s]
+        none = [r["reason"][:48] for r in fx if r["kind"] == "none"]
+        errs = [v for t, v in scored.items() if t0 <= t < t0 + bin_s]
+        out.append({"t_s": round(float(t0 - failed_at_mono)), "accepted": sum(r["kind"] == "visual" and r["accepted"] == "True" for r in fx),
+                    "refused": sum(r["kind"] == "visual" and r["accepted"] != "True" for r in fx),
+                    "no_fix": len(none), "no_fix_reason": max(set(none), key=none.count) if none else "",
+                    "share_3d": round(sum(r["fix_type"] == "3" for r in sent) / len(sent), 2) if sent else None,
+                    "max_err_m": round(max(e for e, _ in errs), 2) if errs else None,
+                    "max_sigma_m": round(max(s for _, s in errs), 2) if errs else None})
+    return out
+
+
 def score_logs(gs: GroundStation, run_dir: Path, failed_at_mono: float, delay_s: float) -> dict:
     """auxgps's own logs against the truth track (one machine, one monotonic clock): its visual fixes and the
     GPS_INPUT it sent while GPS1 was down. A GPS_INPUT describes the vehicle ``delay_s`` before it was sent."""
@@ -175,7 +195,11 @@ def score_logs(gs: GroundStation, run_dir: Path, failed_at_mono: float, delay_s:
     sent_t = np.array([float(r["t_s"]) for r in csv.DictReader(open(run_dir / "gps_input.csv"))])
     gaps_ms = np.diff(sent_t) * 1e3
     late = gaps_ms > 245.0
+    all_rows = list(csv.DictReader(open(run_dir / "fixes.csv")))
+    all_sent = list(csv.DictReader(open(run_dir / "gps_input.csv")))
     return {
+        "timeline": timeline(all_rows, all_sent, failed_at_mono, delay_s, dict(zip(np.array(
+            [float(r["t_s"]) for r in sent])[keep] - delay_s, zip(out_err, sigma)))),
         "gps_input_intervals_ms": {"mean": round(float(gaps_ms.mean()), 1), "max": round(float(gaps_ms.max()), 1),
                                    "over_245": int(late.sum()), "two_in_a_row_over_245": int(np.sum(late[1:] & late[:-1]))},
         "fixes": {**stats(fix_err), "accepted_over_0_5m": int(np.sum(accepted & (fix_err > 0.5))),
@@ -440,6 +464,7 @@ def main(argv=None) -> int:
         write_truth(gs, out / "truth.csv")
         result["auxgps"] = score_logs(gs, out / "run", gs.failed_at_mono, GPS_DELAY_MS / 1000.0)
         result["autopilot_said"] = [t for t in gs.statustexts if any(w in t for w in ("ailsafe", "EKF", "GPS", "variance"))]
+        result["auxgps_said"] = [r["text"] for r in csv.DictReader(open(out / "run" / "events.csv"))][-40:]
         result["busy_processes"] = args.busy
     finally:
         for p in busy:

@@ -20,7 +20,7 @@ from collections import deque
 import numpy as np
 
 from auxgps.core.features import DESCRIPTOR_BYTES
-from auxgps.core.prior_map import FLIGHT, MapSource
+from auxgps.core.prior_map import FLIGHT, MapSource, main_source, shared_sigma_h_m
 
 _TRIU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 
@@ -420,15 +420,13 @@ class LandmarkMap:
         placement error, weighed by its share of ``ids`` (variances)."""
         if len(ids) == 0 or len(self.sources) == 1:
             return 0.0
-        counts = np.bincount(self.source[ids], minlength=len(self.sources))
-        var = np.array([s.georef_sigma_h_m**2 for s in self.sources])
-        return float(np.sqrt(counts @ var / counts.sum()))
+        return shared_sigma_h_m(self.source, self.sources, ids)
 
     def source_name(self, ids: np.ndarray) -> str:
         """The source most of ``ids`` come from (its ``name``, or its kind), for the logs."""
         if len(ids) == 0:
             return ""
-        src = self.sources[int(np.bincount(self.source[ids]).argmax())]
+        src = main_source(self.source, self.sources, ids)
         return src.name or src.kind
 
     def covariance(self, ids: np.ndarray) -> np.ndarray:

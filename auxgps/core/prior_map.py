@@ -49,6 +49,19 @@ class MapSource:
 FLIGHT = MapSource("flight")
 
 
+def shared_sigma_h_m(source: np.ndarray, sources, ids: np.ndarray) -> float:
+    """The horizontal placement error points ``ids`` share through their sources (m, one sigma): each source's
+    ``georef_sigma_h_m``, weighed by its share of ``ids`` (variances). ``source`` indexes ``sources``."""
+    counts = np.bincount(source[ids], minlength=len(sources))
+    var = np.array([s.georef_sigma_h_m**2 for s in sources])
+    return float(np.sqrt(counts @ var / counts.sum()))
+
+
+def main_source(source: np.ndarray, sources, ids: np.ndarray) -> MapSource:
+    """The source most of points ``ids`` come from (``ids`` not empty)."""
+    return sources[int(np.bincount(source[ids]).argmax())]
+
+
 @dataclass(frozen=True)
 class PriorMapModel:
     """How an orthophoto becomes landmarks: the build's ground sample distance ``gsd_m``, and the error model."""

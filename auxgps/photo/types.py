@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from auxgps.core import prior_map
 from auxgps.core.camera import PinholeCamera
 from auxgps.photo.features import PhotoFeatures
 
@@ -94,15 +95,13 @@ class PhotoMap:
         weighed by each source's share of them)."""
         if self.source is None or not len(idx):
             return self.georef_sigma_h_m
-        counts = np.bincount(self.source[idx], minlength=len(self.sources))
-        var = np.array([s.georef_sigma_h_m**2 for s in self.sources])
-        return float(np.sqrt(counts @ var / counts.sum()))
+        return prior_map.shared_sigma_h_m(self.source, self.sources, idx)
 
     def source_name(self, idx: np.ndarray) -> str:
         """The name of the source most of points ``idx`` come from ("" for a map being built)."""
         if self.source is None or not len(idx) or not self.sources:
             return ""
-        return self.sources[int(np.bincount(self.source[idx]).argmax())].name
+        return prior_map.main_source(self.source, self.sources, idx).name
 
 
 @dataclass(frozen=True)
