@@ -149,3 +149,22 @@ def test_tracker_pairs_each_view_with_one_far_enough_back(pipeline):
     assert all(m.baseline_m >= HeadingConfig().min_baseline_m for m in got)
     est = tr.at(views[-1].t_s)
     assert abs(est.offset_rad - b) < max(3 * est.sigma_rad, np.deg2rad(0.05))
+
+
+def test_a_burst_of_correlated_frames_tells_what_a_few_independent_ones_do():
+    """40 positioning frames in 2 s, all with the same 0.4 deg fit error (they fit the same landmarks): the tracker
+    takes them as a few measurements' worth (1/n weights: 1 + 1/2 + ... + 1/40, 4.3), not 40; and frames 2 s
+    apart count in full again."""
+    cfg = HeadingConfig(sigma_deg=2.0, tau_s=1e6, rotation_floor_deg=0.1)  # (no drift over these seconds)
+    sigma_frame = np.hypot(0.3, cfg.rotation_floor_deg)
+    tr = HeadingTracker(cfg)
+    for k in range(40):
+        tr.observe_turn(0.05 * k, -np.deg2rad(0.4), np.deg2rad(0.3) ** 2, 0.0)
+    est = tr.at(2.0)
+    harmonic = sum(1.0 / n for n in range(1, 41))
+    assert np.rad2deg(est.sigma_rad) > 0.95 * sigma_frame / np.sqrt(harmonic)  # 40 independent: sigma / 6.3
+    assert np.rad2deg(est.sigma_rad) < 1.05 * sigma_frame / np.sqrt(harmonic)
+    spaced = HeadingTracker(cfg)
+    for k in range(5):
+        spaced.observe_turn(2.5 * k, -np.deg2rad(0.4), np.deg2rad(0.3) ** 2, 0.0)
+    assert np.rad2deg(spaced.at(10.0).sigma_rad) < 1.05 * sigma_frame / np.sqrt(5)

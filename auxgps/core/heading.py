@@ -101,7 +101,8 @@ class HeadingTracker:
 
     A measurement older than the newest is applied at the newest time (the error changes over minutes; frames come
     within a second). Each is gated on its innovation; a run of ``reset_after`` refused in a row (the error has
-    jumped: a magnetometer re-learnt, a compass switched) opens the estimate to its prior again."""
+    jumped: a magnetometer re-learnt, a compass switched) opens the estimate to its prior again. Evidence of one kind
+    is weighed by how many of its kind came in the last ``decorrelation_s`` (consecutive frames share their errors)."""
 
     def __init__(self, cfg) -> None:
         self.cfg = cfg
@@ -111,6 +112,7 @@ class HeadingTracker:
         self._t: float | None = None
         self._views: deque[MotionView] = deque()
         self._refused_in_row = 0
+        self._recent: dict[str, deque[float]] = {"view": deque(), "turn": deque()}
         self.n_used = 0
         self.n_refused = 0
 
@@ -146,6 +148,15 @@ class HeadingTracker:
         self.n_used += 1
         return True
 
+    def _share(self, kind: str, t_s: float) -> float:
+        """How many measurements of ``kind`` (this one included) fall within ``decorrelation_s``: the factor their
+        variance is weighed by, so that a burst of correlated frames tells what one of them does."""
+        recent = self._recent[kind]
+        while recent and recent[0] < t_s - self.cfg.decorrelation_s:
+            recent.popleft()
+        recent.append(t_s)
+        return float(len(recent))
+
     def observe_view(self, view: MotionView, shift_sigma_m: float, jitter_var_rad2: float = 0.0) -> HeadingMeasurement | None:
         """A mapping frame's view: paired with the oldest kept view at least ``min_baseline_m`` away and at most
         ``max_pair_gap_s`` earlier that shares enough landmarks, and kept for the frames after it. The
@@ -162,11 +173,12 @@ class HeadingTracker:
             if found is not None:
                 break
         self._views.append(view)
-        if found is None or not self.observe(found.t_s, found.offset_rad, found.var_rad2 + jitter_var_rad2):
+        if found is None or not self.observe(found.t_s, found.offset_rad, (found.var_rad2 + jitter_var_rad2) * self._share("view", found.t_s)):
             return None
         return found
 
     def observe_turn(self, t_s: float, turn_rad: float, var_rad2: float, used_rad: float) -> bool:
         """A positioning frame whose rays had to be turned by ``turn_rad`` (``var_rad2``) to fit the map, located
         with the heading less ``used_rad``: the heading error is ``used_rad - turn_rad``."""
-        return self.observe(t_s, used_rad - turn_rad, var_rad2 + np.deg2rad(self.cfg.rotation_floor_deg) ** 2)
+        var = (var_rad2 + np.deg2rad(self.cfg.rotation_floor_deg) ** 2) * self._share("turn", t_s)
+        return self.observe(t_s, used_rad - turn_rad, var)
