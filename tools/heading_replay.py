@@ -2,14 +2,16 @@
 """A recorded SITL flight replayed with the heading solver on or off: what the tracker did, and the GPS_INPUT and
 accepted fixes after GPS1 was lost against SITL's truth (the recording's SIM_STATE).
 
-    .venv/bin/python tools/heading_replay.py REC_DIR OUT_DIR 1|0
+    [AUXGPS_HEADING='{"decorrelation_s": 1.0}'] .venv/bin/python tools/heading_replay.py REC_DIR OUT_DIR 1|0
 
 Prints the number of tracker measurements, then one JSON line: out_rms/out_max (m, 3D outputs), within3 (their
 share inside 3 sigma), avail, fixes, fix_rms, fix_over_0_5. OUT_DIR gets the replay's logs and heading_diag.json
-(each tracker measurement: t, value, variance, accepted, estimate, sigma; rad).
+(each tracker measurement: t, value, variance, accepted, estimate, sigma; rad). AUXGPS_HEADING: heading settings
+over the recording's own (JSON), to try another.
 """
 import csv
 import json
+import os
 import sys
 
 import numpy as np
@@ -33,7 +35,7 @@ def main(rec_dir: str, out_dir: str, solve: bool) -> None:
     hd.HeadingTracker.observe = observe
     meta = open_recording(rec_dir).meta
     cfgd = dict(meta["pipeline"])
-    cfgd["heading"] = {**cfgd.get("heading", {}), "solve": solve}
+    cfgd["heading"] = {**cfgd.get("heading", {}), "solve": solve, **json.loads(os.environ.get("AUXGPS_HEADING", "{}"))}
     pipe = parse_as(PipelineConfig, cfgd, f"{rec_dir}/recording.json")
     res = rp.replay(rec_dir, out_dir, pipeline=pipe)
     json.dump({"obs": obs}, open(out_dir + "/heading_diag.json", "w"))
