@@ -182,10 +182,10 @@ class HeadingConfig:
     """The autopilot's heading error, solved from the images rather than taken as it comes (auxgps.core.heading).
 
     ArduCopter SITL's EKF heading was 2 deg off before take-off and -0.5 to +1.5 deg over a mission; the error is
-    followed as a first-order Gauss-Markov process of ``sigma_deg`` and ``tau_s``. Off by default for now: where the
-    heading is exact (the emulator) the tracker follows the attitude's noise and costs about 0.1 m at 40 m, and an
-    emulator flight restarted after ``kill -9`` landed 1.24 m from home with it (inside 1 m without:
-    tests/test_faults.py);
+    followed as a first-order Gauss-Markov process of ``sigma_deg`` and ``tau_s``. Off by default for now: over the
+    15 m cube world at 1 m/s (the CI SITL flight) there are no mapping views to anchor it and the positioning turns
+    alone make the fixes worse than the autopilot's heading (docs/missions.md), and an emulator flight restarted
+    after ``kill -9`` landed 1.24 m from home with it (inside 1 m without: tests/test_faults.py);
     config/pipeline/heading_solved.yaml turns it on, as the real-SITL Seneca flights flew.
     """
 
