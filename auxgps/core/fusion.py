@@ -161,6 +161,8 @@ class NavFilter:
             self.n_bad_imu += 1
             log.warning("IMU sample at t=%.3f s rejected: %s", imu.t_s, problem)
             return False
+        if imu.t_s - self._last_imu_t > self.cfg.max_imu_gap_s and np.isfinite(self._last_imu_t):
+            log.warning("no IMU sample for %.2f s: carried at constant velocity, covariance loosened", imu.t_s - self._last_imu_t)
         self._last_imu_t = imu.t_s
         later = self._rewind(imu.t_s)  # empty unless a measurement stamped after this sample was fused already
         self._take("imu", imu.t_s, (imu,))
@@ -182,6 +184,7 @@ class NavFilter:
         later = self._rewind(t_s)
         if later is None:
             return self._decide(GateDecision(t_s, False, np.nan, f"fix {self.t_s - t_s:.3f} s old, older than the history"))
+        self._carry_to(float(t_s))
         H = _H_ne(t_s - self.t_s, visual, prior_share)
         S = H @ self._ekf.P @ H.T + cov_ne_m2
         y = p_ne_m - (H @ self._ekf.x)[:, 0]
@@ -215,6 +218,7 @@ class NavFilter:
         later = self._rewind(float(t_s))
         if later is None:
             return False
+        self._carry_to(float(t_s))
         self._take("offset", float(t_s), (np.asarray(p_ne_m, float).reshape(2), np.asarray(cov_ne_m2, float).reshape(2, 2), share))
         self._retake(later)
         return True
@@ -243,6 +247,7 @@ class NavFilter:
         if later is None:
             log.warning("altitude sample at t=%.3f s rejected: older than the history", t_s)
             return False
+        self._carry_to(float(t_s))
         self._take("altitude", t_s, (float(alt_above_origin_m), float(sigma_m)))
         self._retake(later)
         return True
@@ -266,10 +271,11 @@ class NavFilter:
         step = self._history[max(k, 0)]
         t_k, x, P = step.t_state_s, step.x[:, 0], step.P
         dt = t_s - t_k
-        P_p, P_v = P[:3, :3] + P[3:6, 3:6] * dt * dt, P[3:6, 3:6].copy()
+        P_pv = P[:3, 3:6]
+        P_p, P_v = P[:3, :3] + (P_pv + P_pv.T) * dt + P[3:6, 3:6] * dt * dt, P[3:6, 3:6].copy()
         if dt > self.cfg.max_imu_gap_s:  # no IMU this long (a link outage, no attitude): an unknown acceleration too
-            a2 = self.cfg.imu_gap_accel_sigma_m_s2**2
-            P_p, P_v = P_p + _EYE3 * a2 * dt**4 / 4.0, P_v + _EYE3 * a2 * dt * dt
+            q_pp, _, q_vv = self._gap_noise(dt)
+            P_p, P_v = P_p + _EYE3 * q_pp, P_v + _EYE3 * q_vv
         return FusedEstimate(t_s, x[:3] + x[3:6] * dt, x[3:6].copy(), P_p, P_v)
 
     def prior(self, t_s: float | None = None) -> PositionPrior:
@@ -334,19 +340,28 @@ class NavFilter:
         self._ekf.predict(u)
         self.t_s = imu.t_s
 
+    def _gap_noise(self, dt: float) -> tuple[float, float, float]:
+        """Per axis, the position, position-velocity and velocity variance ``dt`` s without IMU add (m^2, m^2/s,
+        m^2/s^2): an acceleration of ``imu_gap_accel_sigma_m_s2`` that changes over the gap (white, of density
+        a^2 dt), so the velocity may have changed by a dt and the position by a dt^2 / sqrt(3). Not one constant
+        acceleration: then the position and velocity added would be fully correlated, and the first fix after
+        the gap would tell the velocity as exactly as the position (a vehicle that braked, hovered and set off
+        again in the gap would be given a velocity it never had, and a sigma of centimetres a second on it)."""
+        q = self.cfg.imu_gap_accel_sigma_m_s2**2 * dt
+        return q * dt**3 / 3.0, q * dt**2 / 2.0, q * dt
+
     def _carry_across_gap(self, dt: float) -> None:
         """No IMU for ``dt`` s (a link outage): one sample's specific force says nothing of the gap, so the state is
-        carried at constant velocity, loosened by an unknown acceleration of ``imu_gap_accel_sigma_m_s2``."""
-        log.warning("no IMU sample for %.2f s: carried at constant velocity, covariance loosened", dt)
+        carried at constant velocity, loosened by an unknown acceleration (:meth:`_gap_noise`)."""
         F = np.eye(_N)
         F[_I3, _I3 + 3] = dt
         decay = np.exp(-dt / self.cfg.fix_bias_tau_s)
         F[9, 9] = F[10, 10] = decay
-        a2 = self.cfg.imu_gap_accel_sigma_m_s2**2
+        q_pp, q_pv, q_vv = self._gap_noise(dt)
         Q = np.zeros((_N, _N))
-        Q[_I3, _I3] = a2 * dt**4 / 4.0
-        Q[_I3, _I3 + 3] = Q[_I3 + 3, _I3] = a2 * dt**3 / 2.0
-        Q[_I3 + 3, _I3 + 3] = a2 * dt**2
+        Q[_I3, _I3] = q_pp
+        Q[_I3, _I3 + 3] = Q[_I3 + 3, _I3] = q_pv
+        Q[_I3 + 3, _I3 + 3] = q_vv
         Q[_I3 + 6, _I3 + 6] = self.cfg.accel_bias_walk_m_s2_sqrt_s**2 * dt
         Q[9, 9] = Q[10, 10] = self.fix_bias_sigma_m**2 * (1.0 - decay**2)
         map_decay = self._map_offset_decay(dt)
@@ -354,6 +369,12 @@ class NavFilter:
         Q[11, 11] = Q[12, 12] = self.map_offset_sigma_m**2 * (1.0 - map_decay**2)
         self._ekf.x = F @ self._ekf.x
         self._ekf.P = F @ self._ekf.P @ F.T + Q
+
+    def _carry_to(self, t_s: float) -> None:
+        """A measurement stamped more than ``max_imu_gap_s`` after the state (the link back before its IMU is):
+        the state is first carried across the gap to it, as the next IMU sample would carry it."""
+        if t_s - self.t_s > self.cfg.max_imu_gap_s:
+            self._take("gap", t_s, ())
 
     def _last_not_after(self, t_s: float) -> int:
         """Index of the last history step not later than ``t_s`` (-1 when the history starts after it)."""
@@ -389,6 +410,9 @@ class NavFilter:
             self._reinitialise(*data)
         elif kind == "offset":
             self._learn_offset(t_s, *data)
+        elif kind == "gap":
+            self._carry_across_gap(t_s - self.t_s)
+            self.t_s = t_s
         else:
             raise ValueError(f"unknown filter step {kind!r}")
         self._history.append(_Step(t_s, self.t_s, kind, data, self._ekf.x.copy(), self._ekf.P.copy()))
