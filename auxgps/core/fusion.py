@@ -309,8 +309,7 @@ class NavFilter:
             return
         cfg = self.cfg
         if dt > cfg.max_imu_gap_s:
-            self._carry_across_gap(dt)
-            self.t_s = imu.t_s
+            self._carry_across_gap(imu.t_s)
             return
         R = imu.R_ned_body
         # F, B and Q are written entry by entry into zeros and an identity (the same numbers as sums of scaled
@@ -350,9 +349,11 @@ class NavFilter:
         q = self.cfg.imu_gap_accel_sigma_m_s2**2 * dt
         return q * dt**3 / 3.0, q * dt**2 / 2.0, q * dt
 
-    def _carry_across_gap(self, dt: float) -> None:
-        """No IMU for ``dt`` s (a link outage): one sample's specific force says nothing of the gap, so the state is
-        carried at constant velocity, loosened by an unknown acceleration (:meth:`_gap_noise`)."""
+    def _carry_across_gap(self, t_s: float) -> None:
+        """No IMU from the state's time to ``t_s`` (a link outage): one sample's specific force says nothing of the
+        gap, so the state is carried to ``t_s`` at constant velocity, loosened by an unknown acceleration
+        (:meth:`_gap_noise`)."""
+        dt = t_s - self.t_s
         F = np.eye(_N)
         F[_I3, _I3 + 3] = dt
         decay = np.exp(-dt / self.cfg.fix_bias_tau_s)
@@ -369,6 +370,7 @@ class NavFilter:
         Q[11, 11] = Q[12, 12] = self.map_offset_sigma_m**2 * (1.0 - map_decay**2)
         self._ekf.x = F @ self._ekf.x
         self._ekf.P = F @ self._ekf.P @ F.T + Q
+        self.t_s = t_s
 
     def _carry_to(self, t_s: float) -> None:
         """A measurement stamped more than ``max_imu_gap_s`` after the state (the link back before its IMU is):
@@ -411,8 +413,7 @@ class NavFilter:
         elif kind == "offset":
             self._learn_offset(t_s, *data)
         elif kind == "gap":
-            self._carry_across_gap(t_s - self.t_s)
-            self.t_s = t_s
+            self._carry_across_gap(t_s)
         else:
             raise ValueError(f"unknown filter step {kind!r}")
         self._history.append(_Step(t_s, self.t_s, kind, data, self._ekf.x.copy(), self._ekf.P.copy()))
