@@ -367,7 +367,6 @@ def test_a_prior_maps_offset_is_forgotten_over_distance():
     assert 1.8 < sigma_b <= 2.0 + 1e-9
 
 
-
 def _flight_through_an_outage(seed: int) -> dict:
     """6 s without IMU (the link cut) while the vehicle brakes from 0.7 m/s west, hovers and sets off north at
     1 m/s; then 3 s of IMU at 100 Hz and GPS1 (0.13 m) at 5 Hz, the first GPS1 fix stamped before the IMU is back."""
@@ -401,8 +400,8 @@ def _flight_through_an_outage(seed: int) -> dict:
 
 def test_after_a_link_outage_a_fix_says_where_the_vehicle_is_not_how_fast_it_flies():
     """The first GPS1 fix after a link outage (stamped before the IMU is back) is accepted and puts the position on
-    GPS1, but leaves the velocity as unknown as the outage made it: over the gap the acceleration varied, it was not
-    one constant acceleration the fix could be solved for. The fixes that follow settle it, and what the filter
+    GPS1, but leaves half the velocity sigma the outage added (3 m/s after 6 s): over the gap the acceleration
+    varied, it was not one constant acceleration the fix could be solved for. The fixes that follow settle it, and what the filter
     claims holds: the velocity's normalised squared error averages about its 2 degrees of freedom. (Told the velocity
     by the first fix, the filter claimed 0.08 m/s, was 1 m/s off and gated GPS1 out at 4 sigma a second later: a
     CI flight's link test then took GPS1 for dragged, and ended in a failsafe.)"""
