@@ -14,8 +14,14 @@ $(BIN)/.installed: pyproject.toml
 demo: $(BIN)/.installed
 	$(BIN)/auxgps demo
 
+# The tests that keep no clock run on every core (a file to a worker, so a module's fixture is built once); then the
+# ones that run against the wall clock (flights on the emulator, a live camera) run alone, as a vehicle would.
+NOT_CI_ONLY := not packaging and not flight and not measurement
 test: $(BIN)/.installed
-	$(BIN)/python -m pytest -q -m "not packaging and not flight and not measurement"
+	status=0; \
+	$(BIN)/python -m pytest -q -n auto --dist loadfile -m "not realtime and $(NOT_CI_ONLY)" || status=$$?; \
+	$(BIN)/python -m pytest -q -m "realtime and $(NOT_CI_ONLY)" || status=$$?; \
+	exit $$status
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -88,12 +88,13 @@ def replay(folder: str | Path, out_dir: str | Path, *, deny_gps_after_s: float |
             log.event(record.t_s, note)
 
     works: dict[int, object] = {}
+    images = rec.images(entry.frame for entry in rec.journal if entry.call == "begin")
     try:
         for entry in rec.journal:
             while result.n_messages < entry.n_messages and not exhausted:
                 feed_next()
             if entry.call == "begin":
-                image = rec.image(entry.frame)
+                image = next(images)
                 if image is None:
                     continue
                 job = est.begin_frame(Frame(rec.frames[entry.frame][0], image))
@@ -124,6 +125,7 @@ def replay(folder: str | Path, out_dir: str | Path, *, deny_gps_after_s: float |
             rec.problems.append(f"flight.tlog: {result.n_messages} messages, where the journal counts "
                                 f"{rec.journal[-1].n_messages}: the tlog is cut or damaged")
     finally:
+        images.close()
         log.close()
     result.frame = est.frame
     result.problems = rec.problems

@@ -67,6 +67,7 @@ def test_a_source_that_cannot_be_opened_is_named(spec, names):
         open_camera(spec, CAMERA, R_BODY_CAM_DOWN)
 
 
+@pytest.mark.realtime
 def test_a_live_camera_faster_than_the_frame_loop_gives_the_newest_frame_and_counts_the_rest(monkeypatch):
     """A camera at 200 frames a second with a driver queue, a frame loop taking 50 ms a frame: each frame read is
     the newest, stamped within a few ms of its capture (read straight from the queue, it would be ever older and

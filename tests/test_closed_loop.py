@@ -10,6 +10,8 @@ import pytest
 
 from tests.conftest import free_port, when_listening
 
+pytestmark = pytest.mark.realtime  # flights in real time: never beside other tests
+
 REPO = Path(__file__).resolve().parent.parent
 WORLD = str(REPO / "config" / "worlds" / "cubes4_0.5m_different.yaml")
 

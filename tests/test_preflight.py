@@ -55,6 +55,7 @@ def check(port, *args):
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_check_and_fix_against_the_emulator():
     port = free_port()
     emu = subprocess.Popen([sys.executable, "-m", "auxgps.sim.emulator", "--world", "one_cube_1m",

@@ -400,6 +400,7 @@ def _params(gcs: GroundStation) -> dict[str, float]:
     return {m.param_id: m.param_value for _, m in gcs.seen.get("PARAM_VALUE", [])}
 
 
+@pytest.mark.realtime
 def test_end_to_end_gps_input_carries_the_flight_home_after_gps1_fails(tmp_path):
     with Emulator(tmp_path, "--speedup", "10", "--altitude", "5", "--survey-size", "4", "--max-seconds", "200") as em:
         # a client that comes and goes: the emulator must take the next one
@@ -474,6 +475,7 @@ def test_end_to_end_gps_input_carries_the_flight_home_after_gps1_fails(tmp_path)
     assert "EMU: GPS primary now GPS 2" in gcs.texts()
 
 
+@pytest.mark.realtime
 def test_end_to_end_without_gps_input_the_vehicle_fails_safe_and_lands_away_from_home(tmp_path):
     args = ("--speedup", "10", "--altitude", "5", "--survey-size", "4", "--gps2-type", "0", "--fail-gps1-at", "8",
             "--max-seconds", "200")

@@ -23,6 +23,7 @@ logged, never waited for: recording must not slow the flight.
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import logging
 import queue
@@ -30,6 +31,9 @@ import shutil
 import struct
 import threading
 import time
+from collections import deque
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -214,6 +218,18 @@ class Recording:
         if image is None:
             self.problems.append(f"frame {k}: {path.name} missing or unreadable; skipped")
         return image
+
+    def images(self, ks: Iterable[int], ahead: int = 8) -> Iterator[np.ndarray | None]:
+        """:meth:`image` of each of ``ks`` in turn, read by a thread up to ``ahead`` frames before it is asked for:
+        decoding a PNG frame takes about half as long as locating the vehicle in it, and OpenCV lets go of the
+        interpreter while it decodes, so a replay on two cores need not wait for its frames."""
+        ks = iter(ks)
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="replay-frames") as pool:
+            pending = deque(pool.submit(self.image, k) for k in itertools.islice(ks, ahead))
+            while pending:
+                image = pending.popleft().result()
+                pending.extend(pool.submit(self.image, k) for k in itertools.islice(ks, 1))
+                yield image
 
 
 def open_recording(folder: str | Path) -> Recording:
