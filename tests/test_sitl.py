@@ -15,62 +15,55 @@ REPO = Path(__file__).resolve().parent.parent
 SITL = os.environ.get("ARDUPILOT_SITL")
 
 
-@pytest.mark.sitl
-@pytest.mark.skipif(not SITL or not Path(SITL).exists(), reason="set ARDUPILOT_SITL to an ArduCopter SITL binary to fly the real autopilot")
-def test_sitl_flies_home_on_auxgps_through_a_gps1_failure(tmp_path):
-    proc = subprocess.run([sys.executable, str(REPO / "tools" / "sitl_flight.py"), "--sitl", SITL, "--out", str(tmp_path)],
+needs_sitl = pytest.mark.skipif(not SITL or not Path(SITL).exists(), reason="set ARDUPILOT_SITL to an ArduCopter SITL binary to fly the real autopilot")
+
+
+@pytest.fixture(scope="module")
+def sitl_flight(tmp_path_factory):
+    """The closed loop flown on SITL by tools/sitl_flight.py; then its recording's replay, started in the background
+    (a replay keeps no clock: it runs beside test_check_is_green_on_sitl..., whose SITL mostly waits, and
+    test_the_sitl_flight_replays... waits for it). Yields the flight's folder, the replay and the time it hides
+    GPS1 from."""
+    import csv
+
+    from auxgps.io.recording import open_recording
+
+    flight = tmp_path_factory.mktemp("sitl_flight")
+    proc = subprocess.run([sys.executable, str(REPO / "tools" / "sitl_flight.py"), "--sitl", SITL, "--out", str(flight)],
                           capture_output=True, text=True, timeout=1500, cwd=REPO)
-    result = json.loads((tmp_path / "result.json").read_text())
+    (flight / "tool.stderr").write_text(proc.stderr)
+    replay = deny_after_s = None
+    if (flight / "rec" / "recording.json").exists() and (flight / "truth.csv").exists():
+        # GPS1 hidden from 60 s before the flight's own failure.
+        first_s = next(open_recording(flight / "rec").messages())[1]
+        failed_s = next((float(r["t_s"]) for r in csv.DictReader(open(flight / "truth.csv")) if r["gps1_failed"] == "1"), None)
+        if failed_s is not None:
+            deny_after_s = round(failed_s - first_s - 60.0, 1)
+            replay = subprocess.Popen(
+                [sys.executable, "-m", "auxgps.cli", "replay", str(flight / "rec"), "--deny-gps-after", str(deny_after_s),
+                 "--out", str(flight / "denied"), "--json", str(flight / "denied.json"), "--report", str(flight / "denied.png")],
+                cwd=REPO, stdout=open(flight / "replay.stdout", "w"), stderr=open(flight / "replay.stderr", "w"))
+    try:
+        yield flight, replay, deny_after_s
+    finally:
+        if replay is not None and replay.poll() is None:
+            replay.kill()
+            replay.wait(timeout=20)
+
+
+@pytest.mark.sitl
+@needs_sitl
+def test_sitl_flies_home_on_auxgps_through_a_gps1_failure(sitl_flight):
+    flight, _, _ = sitl_flight
+    result = json.loads((flight / "result.json").read_text())
     print(json.dumps(result))
-    assert result["landed"] and result["landing_error_m"] <= 1.0, proc.stderr[-2000:]
+    assert result["landed"] and result["landing_error_m"] <= 1.0, (flight / "tool.stderr").read_text()[-2000:]
     assert 3 in result["gps2_fix_types_seen"]  # the autopilot's GPS2 carried auxgps's 3D fix while GPS1 was down
     assert result["denied_s"] >= 180  # the issue's closed loop: GPS1 down for at least 3 minutes
-    assert len((tmp_path / "truth.csv").read_text().splitlines()) > 1000  # the truth track, to score it again
-    check_replay(tmp_path)
+    assert len((flight / "truth.csv").read_text().splitlines()) > 1000  # the truth track, to score it again
 
 
 atol_replay_m = 1e-3  # 1 mm: the replay is the flight's own computation
-
-
-def check_replay(flight: Path) -> None:
-    """The flight's recording replayed with GPS1 hidden from 60 s before the flight's own failure: until then the
-    same GPS_INPUT as flown (fix types, positions within 1 mm: the replay is the flight's own computation); from
-    then on scored against the GPS1 it hid and against SITL's truth. (One replay for both, minutes shorter than two;
-    a whole flight replayed to the last output is tests/test_closed_loop.py's, on the emulator.)"""
-    import csv
-
-    from auxgps.core.geometry import LocalFrame
-    from auxgps.io.recording import open_recording
-
-    first_s = next(open_recording(flight / "rec").messages())[1]
-    failed_s = next(float(r["t_s"]) for r in csv.DictReader(open(flight / "truth.csv")) if r["gps1_failed"] == "1")
-    deny_after_s = round(failed_s - first_s - 60.0, 1)
-    p = subprocess.run([sys.executable, "-m", "auxgps.cli", "replay", str(flight / "rec"), "--deny-gps-after", str(deny_after_s),
-                        "--out", str(flight / "denied"), "--json", str(flight / "denied.json"), "--report", str(flight / "denied.png")],
-                       cwd=REPO, capture_output=True, text=True, timeout=1200)
-    print(p.stdout)
-    print(p.stderr[-3000:])
-    assert p.returncode == 0 and "Traceback" not in p.stderr
-    flown = list(csv.DictReader(open(flight / "run" / "gps_input.csv")))
-    replayed = list(csv.DictReader(open(flight / "denied" / "gps_input.csv")))
-    assert len(replayed) == len(flown) > 1000
-    # Outputs asked for before GPS1 was hidden (a second's margin) have seen nothing of the hiding.
-    before = [k for k, r in enumerate(flown) if float(r["t_s"]) < first_s + deny_after_s - 1.0]
-    assert len(before) > 500
-    assert [replayed[k]["fix_type"] for k in before] == [flown[k]["fix_type"] for k in before]
-    frame = LocalFrame(float(flown[0]["lat_deg"]), float(flown[0]["lon_deg"]), 0.0)
-
-    def ne(rows):
-        return frame.to_ned(lat_deg=np.array([float(r["lat_deg"]) for r in rows]), lon_deg=np.array([float(r["lon_deg"]) for r in rows]),
-                            alt_amsl_m=np.zeros(len(rows)))[:, :2]
-
-    worst = float(np.max(np.linalg.norm(ne([flown[k] for k in before]) - ne([replayed[k] for k in before]), axis=1)))
-    print(json.dumps({"replay": {"gps_input_compared": len(before), "max_position_difference_m": worst}}))
-    assert worst <= atol_replay_m
-    score = json.loads((flight / "denied.json").read_text())["score"]
-    print(json.dumps({"denied_replay": score}))
-    assert score["scored"] and score["gps1"]["seconds_compared"] >= 50
-    assert score["gps1"]["rms_m"] < 1.0 and score["truth"]["rms_m"] < 1.0
 
 
 def test_lag_correlation_known_answers():
@@ -118,7 +111,7 @@ def check_until_green(within_s: float) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.sitl
-@pytest.mark.skipif(not SITL or not Path(SITL).exists(), reason="set ARDUPILOT_SITL to an ArduCopter SITL binary to fly the real autopilot")
+@needs_sitl
 def test_check_is_green_on_sitl_names_what_is_wrong_and_fixes_it(tmp_path):
     import os
 
@@ -147,3 +140,45 @@ def test_check_is_green_on_sitl_names_what_is_wrong_and_fixes_it(tmp_path):
     finally:
         sitl.terminate()
         sitl.wait(timeout=20)
+
+
+@pytest.mark.sitl
+@needs_sitl
+def test_the_sitl_flight_replays_as_flown_then_scores_the_hidden_gps1(sitl_flight):
+    """The flight's recording replayed with GPS1 hidden from 60 s before the flight's own failure: until then the
+    same GPS_INPUT as flown (fix types, positions within 1 mm: the replay is the flight's own computation); from
+    then on scored against the GPS1 it hid and against SITL's truth. (One replay for both; a whole flight replayed
+    to the last output is tests/test_closed_loop.py's, on the emulator.)"""
+    import csv
+
+    from auxgps.core.geometry import LocalFrame
+    from auxgps.io.recording import open_recording
+
+    flight, replay, deny_after_s = sitl_flight
+    assert replay is not None, f"the flight left no recording and truth to replay: {sorted(p.name for p in flight.iterdir())}"
+    rc = replay.wait(timeout=1200)
+    stdout, stderr = (flight / "replay.stdout").read_text(), (flight / "replay.stderr").read_text()
+    print(stdout)
+    print(stderr[-3000:])
+    assert rc == 0 and "Traceback" not in stderr
+    first_s = next(open_recording(flight / "rec").messages())[1]
+    flown = list(csv.DictReader(open(flight / "run" / "gps_input.csv")))
+    replayed = list(csv.DictReader(open(flight / "denied" / "gps_input.csv")))
+    assert len(replayed) == len(flown) > 1000
+    # Outputs asked for before GPS1 was hidden (a second's margin) have seen nothing of the hiding.
+    before = [k for k, r in enumerate(flown) if float(r["t_s"]) < first_s + deny_after_s - 1.0]
+    assert len(before) > 500
+    assert [replayed[k]["fix_type"] for k in before] == [flown[k]["fix_type"] for k in before]
+    frame = LocalFrame(float(flown[0]["lat_deg"]), float(flown[0]["lon_deg"]), 0.0)
+
+    def ne(rows):
+        return frame.to_ned(lat_deg=np.array([float(r["lat_deg"]) for r in rows]), lon_deg=np.array([float(r["lon_deg"]) for r in rows]),
+                            alt_amsl_m=np.zeros(len(rows)))[:, :2]
+
+    worst = float(np.max(np.linalg.norm(ne([flown[k] for k in before]) - ne([replayed[k] for k in before]), axis=1)))
+    print(json.dumps({"replay": {"gps_input_compared": len(before), "max_position_difference_m": worst}}))
+    assert worst <= atol_replay_m
+    score = json.loads((flight / "denied.json").read_text())["score"]
+    print(json.dumps({"denied_replay": score}))
+    assert score["scored"] and score["gps1"]["seconds_compared"] >= 50
+    assert score["gps1"]["rms_m"] < 1.0 and score["truth"]["rms_m"] < 1.0

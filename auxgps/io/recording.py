@@ -47,6 +47,10 @@ log = logging.getLogger(__name__)
 
 FORMAT = "auxgps-recording"
 VERSION = 1
+#: Frames are written losslessly, zlib level 1, each row filtered by its left neighbour ("sub") rather than by the
+#: best of five filters tried per row: a 1280 x 720 simulated frame encodes in 7.5 ms instead of 28 ms, to the same
+#: size, and a real one (a Brighton photo at that size) in 87 ms instead of 96 ms, 7 % larger.
+PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB]
 
 
 class Recorder:
@@ -118,7 +122,7 @@ class Recorder:
                 return
             name, image = item
             t0 = time.perf_counter()
-            ok = cv2.imwrite(str(self.folder / name), image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+            ok = cv2.imwrite(str(self.folder / name), image, PNG_PARAMS)
             self.write_ms.append((time.perf_counter() - t0) * 1e3)
             if not ok:
                 log.warning("recording: could not write %s", name)
