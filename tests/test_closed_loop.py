@@ -376,7 +376,10 @@ class LineProxy:
                     self.gps_input_t.append(now)
                 elif msg.get_type() == "STATUSTEXT":
                     self.texts.append(msg.text)
-            self.up.sendall(data)
+            try:
+                self.up.sendall(data)
+            except OSError:  # the emulator has ended its flight and closed its side
+                return
 
     def cut(self, seconds: float) -> float:
         """Close auxgps's connection and refuse new ones for ``seconds``; returns when the line is back."""

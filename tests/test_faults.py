@@ -103,7 +103,6 @@ def test_kill_9_mid_flight_restarts_from_the_checkpoint_and_lands_home(tmp_path)
     assert "Traceback" not in run2_log
 
 
-@pytest.mark.flight
 def test_each_injected_fault_is_named_once_and_never_becomes_a_confident_wrong_fix(tmp_path):
     """config/faults/all.yaml on a cube world at 2 frames a second. Frozen and blurred frames over featureless
     ground are alike anyway (nothing to judge them by, nothing to fix on): those two are shown on the textured
