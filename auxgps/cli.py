@@ -152,6 +152,7 @@ def _run(args) -> int:
         checkpoint_s=args.checkpoint,
         frame_nice=args.nice,
         take_primary_on_drift=args.take_primary_on_drift,
+        stall_report_s=args.stall_report,
     )
     return Companion(load_pipeline_config(args.config), opts).run()
 
@@ -594,6 +595,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--nice", type=_number(int, lambda v: 0 <= v <= 19, "0 to 19"), default=0, metavar="N",
                    help="run frame processing N niceness steps below the GPS_INPUT timer and the link reader, so that a "
                         "busy computer delays frames (dropped, newest kept) before GPS_INPUT (default 0; see docs/faults.md)")
+    p.add_argument("--stall-report", type=_non_negative(float), default=0.5, metavar="S",
+                   help="the GPS_INPUT timer held up over S seconds: every thread's stack at that moment to stalls.txt "
+                        "in --log-dir, and an event (default 0.5; 0: off)")
     p.add_argument("--take-primary-on-drift", action="store_true",
                    help="opt-in: while GPS1 is found dragged away from the map, make GPS2 the autopilot's primary "
                         "(GPS_AUTO_SWITCH 0, GPS_PRIMARY 1; restored after). Read the README's risks first")

@@ -9,6 +9,7 @@ this process's monotonic clock.
 
 from __future__ import annotations
 
+import faulthandler
 import logging
 import os
 import threading
@@ -89,6 +90,31 @@ class PrimaryTakeover:
                         f"{self.saved['GPS_PRIMARY']:g} restored")
 
 
+class StallWatch:
+    """Every thread's stack, written to ``path`` when :meth:`tick` has not come for ``timeout_s``: ``faulthandler``'s
+    watchdog, whose C thread needs no interpreter lock, so that it reports a stall as it happens, whether a thread
+    holds the lock in native code or the process is not scheduled. The GPS_INPUT timer ticks it (a 1 s stall of the
+    whole process, once in three busy SITL flights, is why: docs/faults.md). One per process (faulthandler has one
+    watchdog); the file stays empty while nothing stalls."""
+
+    def __init__(self, path: Path, timeout_s: float) -> None:
+        self.path, self.timeout_s = Path(path), timeout_s
+        self._file = open(self.path, "a")
+        self._size0 = self.path.stat().st_size
+
+    def tick(self) -> None:
+        faulthandler.dump_traceback_later(self.timeout_s, repeat=False, file=self._file)
+
+    @property
+    def fired(self) -> bool:
+        """Whether a stall has been written since this watch began."""
+        return self.path.stat().st_size > self._size0
+
+    def close(self) -> None:
+        faulthandler.cancel_dump_traceback_later()
+        self._file.close()
+
+
 @dataclass(frozen=True)
 class RunOptions:
     connect: str
@@ -105,6 +131,7 @@ class RunOptions:
     checkpoint_s: float = 10.0  # with map_out: the map is also written this often while flying, and at every mode change (0: at the end only)
     frame_nice: int = 0  # frame processing this many niceness steps below the timer and the reader (Linux: per thread)
     take_primary_on_drift: bool = False  # opt-in: make GPS2 the autopilot's primary while GPS1 is found dragged
+    stall_report_s: float = 0.5  # the GPS_INPUT timer held up this long: every thread's stack to stalls.txt (0: off)
 
 
 class Companion:
@@ -166,14 +193,25 @@ class Companion:
     def _gps_input_loop(self) -> None:
         period = 1.0 / self.opts.gps_input_rate_hz
         next_t = time.monotonic()
-        while not self._stop.is_set():
-            next_t += period
-            self._send_gps_input()
-            delay = next_t - time.monotonic()
-            if delay < -period:
-                next_t = time.monotonic()  # fell behind (a stalled machine): restart the schedule, do not burst
-            elif delay > 0:
-                self._stop.wait(delay)
+        watch = StallWatch(Path(self.opts.log_dir) / "stalls.txt", period + self.opts.stall_report_s) \
+            if self.opts.stall_report_s > 0 else None
+        try:
+            while not self._stop.is_set():
+                next_t += period
+                if watch is not None:
+                    watch.tick()
+                self._send_gps_input()
+                delay = next_t - time.monotonic()
+                if delay < -period:
+                    self._event(time.monotonic(), f"GPS_INPUT timer held up {period - delay:.2f} s"
+                                + (f" (every thread's stack then: {watch.path})" if watch is not None and watch.fired else ""))
+                    next_t = time.monotonic()  # fell behind (a stalled machine): restart the schedule, do not burst
+                elif delay > 0:
+                    self._stop.wait(delay)
+        finally:
+            if watch is not None:
+                watch.close()
+
 
     def _send_gps_input(self) -> None:
         t_unix_s = time.time()

@@ -6,8 +6,10 @@ accepted fixes after GPS1 was lost against SITL's truth (the recording's SIM_STA
 
 Prints the number of tracker measurements, then one JSON line: out_rms/out_max (m, 3D outputs), within3 (their
 share inside 3 sigma), avail, fixes, fix_rms, fix_over_0_5. OUT_DIR gets the replay's logs and heading_diag.json
-(each tracker measurement: t, value, variance, accepted, estimate, sigma; rad). AUXGPS_HEADING: heading settings
-over the recording's own (JSON), to try another.
+(each tracker measurement: t, value, variance, accepted, estimate, sigma; rad) and fix_errors.csv (each accepted
+fix after the loss: t_s, error_m, sigma_m, inliers). AUXGPS_HEADING: heading settings over the recording's own
+(JSON), to try another; AUXGPS_PIPELINE: any pipeline settings over the recording's (JSON, merged key by key, e.g.
+'{"noise": {"heading_deg": 1.5}}').
 """
 import csv
 import json
@@ -22,6 +24,10 @@ from auxgps.config import PipelineConfig, parse_as
 from auxgps.io.recording import open_recording
 
 
+def _merged(base: dict, over: dict) -> dict:
+    return {**base, **{k: _merged(base.get(k) or {}, v) if isinstance(v, dict) else v for k, v in over.items()}}
+
+
 def main(rec_dir: str, out_dir: str, solve: bool) -> None:
     obs = []  # every measurement the tracker weighed, with the estimate after it
     orig = hd.HeadingTracker.observe
@@ -34,7 +40,7 @@ def main(rec_dir: str, out_dir: str, solve: bool) -> None:
 
     hd.HeadingTracker.observe = observe
     meta = open_recording(rec_dir).meta
-    cfgd = dict(meta["pipeline"])
+    cfgd = _merged(dict(meta["pipeline"]), json.loads(os.environ.get("AUXGPS_PIPELINE", "{}")))
     cfgd["heading"] = {**cfgd.get("heading", {}), "solve": solve, **json.loads(os.environ.get("AUXGPS_HEADING", "{}"))}
     pipe = parse_as(PipelineConfig, cfgd, f"{rec_dir}/recording.json")
     res = rp.replay(rec_dir, out_dir, pipeline=pipe)
@@ -59,6 +65,10 @@ def main(rec_dir: str, out_dir: str, solve: bool) -> None:
     fp = frame.to_ned(lat_deg=np.array([float(r["lat_deg"]) for r in fx]), lon_deg=np.array([float(r["lon_deg"]) for r in fx]), alt_amsl_m=np.zeros(len(fx)))[:, :2]
     ft = np.array([float(r["t_s"]) for r in fx])
     fe = np.linalg.norm(fp - np.column_stack([np.interp(ft, tt, tp[:, k]) for k in (0, 1)]), axis=1)
+    with open(out_dir + "/fix_errors.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["t_s", "error_m", "sigma_m", "inliers"])
+        w.writerows((r["t_s"], f"{err:.4f}", r["sigma_m"], r["n"]) for r, err in zip(fx, fe))
     print(json.dumps({"out_rms": float(np.sqrt(np.mean(e**2))), "out_max": float(e.max()), "within3": float(np.mean(e <= 3 * s)),
                       "avail": float(f3.mean()), "fixes": len(fe), "fix_rms": float(np.sqrt(np.mean(fe**2))), "fix_over_0_5": int((fe > 0.5).sum())}))
 

@@ -9,7 +9,9 @@ Files in the log folder, flushed per row (a crash loses nothing written):
 - ``gps_input.csv``: per GPS_INPUT: time, fix type, latitude, longitude (deg), altitude AMSL and horizontal
   accuracy (m), satellites, auxgps's mode;
 - ``events.csv``: time, text and the autopilot's boot time of each status line, fault and GPS1 disagreement (the
-  boot time is what the autopilot's own log stamps, to find the moment there; empty in a replay).
+  boot time is what the autopilot's own log stamps, to find the moment there; empty in a replay);
+- ``stalls.txt`` (written by ``auxgps run``, not by this class): every thread's stack at each moment the GPS_INPUT
+  timer was held up (``--stall-report``); empty when nothing stalled.
 """
 
 from __future__ import annotations
