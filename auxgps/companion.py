@@ -100,15 +100,16 @@ class StallWatch:
     def __init__(self, path: Path, timeout_s: float) -> None:
         self.path, self.timeout_s = Path(path), timeout_s
         self._file = open(self.path, "a")
-        self._size0 = self.path.stat().st_size
+        self._size = self.path.stat().st_size
 
     def tick(self) -> None:
         faulthandler.dump_traceback_later(self.timeout_s, repeat=False, file=self._file)
 
-    @property
-    def fired(self) -> bool:
-        """Whether a stall has been written since this watch began."""
-        return self.path.stat().st_size > self._size0
+    def wrote(self) -> bool:
+        """Whether a stall has been written since the last call (or since the watch began)."""
+        size = self.path.stat().st_size
+        grew, self._size = size > self._size, size
+        return grew
 
     def close(self) -> None:
         faulthandler.cancel_dump_traceback_later()
@@ -204,14 +205,13 @@ class Companion:
                 delay = next_t - time.monotonic()
                 if delay < -period:
                     self._event(time.monotonic(), f"GPS_INPUT timer held up {period - delay:.2f} s"
-                                + (f" (every thread's stack then: {watch.path})" if watch is not None and watch.fired else ""))
+                                + (f" (every thread's stack then: {watch.path})" if watch is not None and watch.wrote() else ""))
                     next_t = time.monotonic()  # fell behind (a stalled machine): restart the schedule, do not burst
                 elif delay > 0:
                     self._stop.wait(delay)
         finally:
             if watch is not None:
                 watch.close()
-
 
     def _send_gps_input(self) -> None:
         t_unix_s = time.time()

@@ -50,6 +50,44 @@ GPS_DELAY_MS = 100  # auxgps run --gps-delay-ms, as GPS2_DELAY_MS in config/ardu
 FAIL_AFTER_WAYPOINT = 5  # GPS1 is disabled at the end of the third leg
 
 
+class StealClock:
+    """The time the hypervisor took each virtual CPU away (/proc/stat's steal), sampled about once a second: a
+    guest's thread that holds Python's interpreter lock stops every thread of its process while its CPU is taken
+    (docs/faults.md). Nothing on a machine without /proc/stat or steal accounting."""
+
+    def __init__(self, every_s: float = 1.0) -> None:
+        self.every_s, self._hz = every_s, os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+        self._last: tuple[float, list[int]] | None = None
+        self.spells: list[tuple[float, int, float]] = []  # (monotonic s at the sample's end, cpu, steal s) over 0.2 s
+        self.total_s = 0.0
+
+    @staticmethod
+    def _read() -> list[int] | None:
+        try:
+            with open("/proc/stat") as f:
+                return [int(line.split()[8]) for line in f if line.startswith("cpu") and line[3].isdigit()]
+        except (OSError, IndexError, ValueError):
+            return None
+
+    def sample(self) -> None:
+        now = time.monotonic()
+        if self._last is not None and now - self._last[0] < self.every_s:
+            return
+        steal = self._read()
+        if steal is None:
+            return
+        if self._last is not None:
+            for cpu, (a, b) in enumerate(zip(self._last[1], steal)):
+                d_s = (b - a) / self._hz
+                self.total_s += d_s
+                if d_s >= 0.2:
+                    self.spells.append((round(now, 3), cpu, d_s))
+        self._last = (now, steal)
+
+    def figures(self) -> dict:
+        return {"total_s": round(self.total_s, 2), "spells_over_0_2s": self.spells}
+
+
 class GroundStation:
     def __init__(self, home):
         self.home = home
@@ -66,6 +104,7 @@ class GroundStation:
         self._fault_params: dict[str, float] = {}
         self._fault_tick_mono = 0.0
         self.reached: set[int] = set()  # mission items the autopilot said it reached (MISSION_ITEM_REACHED)
+        self.steal = StealClock()
 
     def apply_faults(self):
         """Set SITL's GPS1 parameters for the faults under way (five times a second at most; only changes sent)."""
@@ -107,6 +146,7 @@ class GroundStation:
             if msg.get_type() == "SIM_STATE":
                 self.track.append((time.monotonic(), *self.ne(msg.lat_int / 1e7, msg.lon_int / 1e7)))
                 self.apply_faults()
+                self.steal.sample()
             if msg.get_type() == "STATUSTEXT" and "Arm" not in msg.text:
                 print("AP:", msg.text, file=sys.stderr, flush=True)
                 if msg.get_srcComponent() == M.MAV_COMP_ID_AUTOPILOT1:
@@ -466,6 +506,7 @@ def main(argv=None) -> int:
         result["autopilot_said"] = [t for t in gs.statustexts if any(w in t for w in ("ailsafe", "EKF", "GPS", "variance"))]
         result["auxgps_said"] = [r["text"] for r in csv.DictReader(open(out / "run" / "events.csv"))][-40:]
         result["busy_processes"] = args.busy
+        result["cpu_steal"] = gs.steal.figures()  # beside events.csv's "GPS_INPUT timer held up" (the same clock)
     finally:
         for p in busy:
             p.kill()
