@@ -93,8 +93,8 @@ class PrimaryTakeover:
 class StallWatch:
     """Every thread's stack, written to ``path`` when :meth:`tick` has not come for ``timeout_s``: ``faulthandler``'s
     watchdog, whose C thread needs no interpreter lock, so that it reports a stall as it happens, whether a thread
-    holds the lock in native code or the process is not scheduled. The GPS_INPUT timer ticks it (a 1 s stall of the
-    whole process, once in three busy SITL flights, is why: docs/faults.md). One per process (faulthandler has one
+    holds the lock in native code or the process is not scheduled. The GPS_INPUT timer ticks it (1 s stalls of the
+    whole process, in two of eight busy SITL flights, are why: docs/faults.md). One per process (faulthandler has one
     watchdog); the file stays empty while nothing stalls."""
 
     def __init__(self, path: Path, timeout_s: float) -> None:

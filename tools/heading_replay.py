@@ -40,8 +40,8 @@ def main(rec_dir: str, out_dir: str, solve: bool) -> None:
 
     hd.HeadingTracker.observe = observe
     meta = open_recording(rec_dir).meta
-    cfgd = _merged(dict(meta["pipeline"]), json.loads(os.environ.get("AUXGPS_PIPELINE", "{}")))
-    cfgd["heading"] = {**cfgd.get("heading", {}), "solve": solve, **json.loads(os.environ.get("AUXGPS_HEADING", "{}"))}
+    cfgd = _merged(_merged(meta["pipeline"], json.loads(os.environ.get("AUXGPS_PIPELINE", "{}"))),
+                   {"heading": {"solve": solve, **json.loads(os.environ.get("AUXGPS_HEADING", "{}"))}})
     pipe = parse_as(PipelineConfig, cfgd, f"{rec_dir}/recording.json")
     res = rp.replay(rec_dir, out_dir, pipeline=pipe)
     json.dump({"obs": obs}, open(out_dir + "/heading_diag.json", "w"))
