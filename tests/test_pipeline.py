@@ -456,3 +456,88 @@ def test_pairs_within_equals_brute_force_in_order(monkeypatch, radix):
     np.testing.assert_array_equal(i, i_ref)
     np.testing.assert_array_equal(j, j_ref)
     assert i.dtype == j.dtype == np.int64
+
+
+def _greedy_loop(a, b):
+    used_a, used_b, kept = set(), set(), []
+    for k, (x, y) in enumerate(zip(a.tolist(), b.tolist())):
+        if x in used_a or y in used_b:
+            continue
+        used_a.add(x)
+        used_b.add(y)
+        kept.append(k)
+    return np.array(kept, int)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_greedy_one_to_one_in_rounds_keeps_the_pairs_the_loop_keeps(seed):
+    """The mapper's one-to-one assignment in rounds of array work against the pair-by-pair loop it replaced, on
+    pair lists as crowded as a frame's (about three candidate landmarks a feature, chains of shared ends)."""
+    from auxgps.core.mapping import greedy_one_to_one
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 3000))
+    a = rng.integers(0, max(1, n // 3), n)
+    b = rng.integers(0, max(1, n // 4), n)
+    kept = greedy_one_to_one(a, b)
+    np.testing.assert_array_equal(kept, _greedy_loop(a, b))
+    assert len(np.unique(a[kept])) == len(np.unique(b[kept])) == len(kept)
+    assert len(greedy_one_to_one(np.zeros(0, int), np.zeros(0, int))) == 0
+
+
+def test_common_shift_is_the_mean_of_the_densest_cluster_of_offsets():
+    """A frame's candidate offsets: a tight cluster at the GPS and attitude shift, a looser second cluster (a
+    repeated pattern) and uniform clutter out to the match radius. The shift is the first cluster's mean; too few
+    agreeing offsets give none; offsets of landmarks not yet established do not vote."""
+    rng = np.random.default_rng(3)
+    true_shift = np.array([7.3, -4.1])
+    cluster = true_shift + rng.normal(0, 0.5, (300, 2))
+    decoy = np.array([-20.0, 15.0]) + rng.normal(0, 1.5, (200, 2))
+    clutter = rng.uniform(-48, 48, (1500, 2))
+    off = np.vstack([cluster, decoy, clutter])
+    shift = Mapper._common_shift(off, np.ones(len(off), bool))
+    near = np.linalg.norm(off - true_shift, axis=1) <= 2.0
+    assert np.linalg.norm(shift - true_shift) < 0.15
+    assert np.linalg.norm(shift - off[near].mean(axis=0)) < 0.15
+    # The decoy alone counts when the cluster's landmarks are new ones.
+    established = np.ones(len(off), bool)
+    established[:300] = False
+    assert np.linalg.norm(Mapper._common_shift(off, established) - np.array([-20.0, 15.0])) < 0.5
+    np.testing.assert_array_equal(Mapper._common_shift(rng.uniform(-48, 48, (2, 2)), np.ones(2, bool)), np.zeros(2))
+    # The histogram only picks whom to count exactly: the offset that counting every offset's neighbours finds,
+    # or in a broad cluster of near-equal counts one whose shift is a fraction of a pixel from it.
+    same = 0
+    for seed in range(40):
+        r = np.random.default_rng(seed)
+        off = np.vstack([r.normal(r.uniform(-10, 10, 2), r.uniform(0.3, 3.0), (int(r.integers(0, 1500)), 2)),
+                         r.uniform(-48, 48, (int(r.integers(3, 1500)), 2))])
+        votes = np.count_nonzero(np.linalg.norm(off[:, None] - off[None], axis=2) <= 2.0, axis=1)
+        ref = off[np.linalg.norm(off - off[np.argmax(votes)], axis=1) <= 2.0].mean(axis=0)
+        got = Mapper._common_shift(off, np.ones(len(off), bool))
+        same += np.array_equal(got, ref)
+        assert np.linalg.norm(got - ref) < 0.5
+    assert same >= 36
+    far_apart = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [-10.0, -10.0]])
+    np.testing.assert_array_equal(Mapper._common_shift(far_apart, np.ones(4, bool)), np.zeros(2))
+
+
+def test_ray_mahalanobis2_is_the_distance_across_the_ray_in_any_basis_of_that_plane():
+    """Against its definition with a basis of the plane across each ray from an SVD: steep and shallow rays alike."""
+    from auxgps.core.mapping import ray_mahalanobis2
+
+    rng = np.random.default_rng(5)
+    m = 400
+    d = rng.normal(size=(m, 3))
+    d[: m // 2, 2] = np.abs(d[: m // 2, 2]) * 20.0  # half of them near nadir
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    c = np.array([1.0, -2.0, -15.0])
+    L = c + d * rng.uniform(5, 30, (m, 1)) + rng.normal(0, 0.3, (m, 3))
+    A = rng.normal(size=(m, 3, 3)) * 0.1
+    cov = A @ A.transpose(0, 2, 1) + 1e-3 * np.eye(3)
+    sigma = rng.uniform(0.01, 0.2, m)
+    got = ray_mahalanobis2(L, cov, c, d, sigma)
+    for k in range(m):
+        E = np.linalg.svd(d[k][None])[2][1:]  # (2, 3): orthonormal, across d
+        r = E @ (L[k] - c)
+        S = E @ cov[k] @ E.T + sigma[k] ** 2 * np.eye(2)
+        assert got[k] == pytest.approx(r @ np.linalg.solve(S, r), rel=1e-9)

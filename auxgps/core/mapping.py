@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from auxgps.core.camera import PinholeCamera
 from auxgps.core.features import Features, hamming, pairs_within
@@ -39,15 +39,24 @@ def ray_information(rays_ned: np.ndarray, sigma_perp_m: np.ndarray) -> np.ndarra
 
 def ray_mahalanobis2(L: np.ndarray, cov_L: np.ndarray, c: np.ndarray, d: np.ndarray, sigma_perp_m: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distance (2 dof) of landmarks ``L`` (M, 3) with covariance ``cov_L`` (M, 3, 3) from
-    rays ``c + t d`` (unit ``d`` (M, 3)) with isotropic cross-ray noise ``sigma_perp_m`` (M,)."""
-    helper = np.where(np.abs(d[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
-    e1 = np.cross(d, helper)
+    rays ``c + t d`` (unit ``d`` (M, 3)) with isotropic cross-ray noise ``sigma_perp_m`` (M,).
+
+    In the plane across each ray, spanned by ``e1 = d x h / |d x h|`` (``h`` down, or north for a ray near
+    vertical) and ``e2 = d x e1``; written out per component, as this runs on every candidate pair of a frame."""
+    dx, dy, dz = np.asarray(d, float).T
+    steep = np.abs(dz) >= 0.9
+    # d x (0, 0, 1) = (dy, -dx, 0); d x (1, 0, 0) = (0, dz, -dy)
+    e1 = np.where(steep[:, None], np.column_stack([np.zeros_like(dx), dz, -dy]), np.column_stack([dy, -dx, np.zeros_like(dx)]))
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(d, e1)
-    E = np.stack([e1, e2], axis=1)  # (M, 2, 3)
-    r = np.einsum("mij,mj->mi", E, L - c)
-    S = np.einsum("mij,mjk,mlk->mil", E, cov_L, E) + (sigma_perp_m**2)[:, None, None] * np.eye(2)[None]
-    return np.einsum("mi,mij,mj->m", r, np.linalg.inv(S), r)
+    e2 = np.column_stack([dy * e1[:, 2] - dz * e1[:, 1], dz * e1[:, 0] - dx * e1[:, 2], dx * e1[:, 1] - dy * e1[:, 0]])
+    v = L - c
+    r1, r2 = np.einsum("mi,mi->m", e1, v), np.einsum("mi,mi->m", e2, v)
+    Ce1, Ce2 = np.einsum("mij,mj->mi", cov_L, e1), np.einsum("mij,mj->mi", cov_L, e2)
+    s2 = sigma_perp_m**2
+    s11 = np.einsum("mi,mi->m", e1, Ce1) + s2
+    s22 = np.einsum("mi,mi->m", e2, Ce2) + s2
+    s12 = np.einsum("mi,mi->m", e1, Ce2)
+    return (r1 * r1 * s22 - 2.0 * r1 * r2 * s12 + r2 * r2 * s11) / (s11 * s22 - s12 * s12)
 
 
 class Mapper:
@@ -143,41 +152,85 @@ class Mapper:
         if len(fi) == 0:
             return none
         lm = cand[ci]
-        cov = self.map.covariance(lm)
         shift = self._common_shift(offsets, self.map.n_seen[lm] >= 3)
-        # Each landmark's own pixel uncertainty: its largest position sigma seen from this range.
-        L = self.map.p_ned_m[lm].astype(float)
-        range_m = np.linalg.norm(L - c, axis=1)
-        sigma_lm_px = np.sqrt(np.linalg.eigvalsh(cov)[:, -1]) / range_m * self.camera.focal_px
+        # Each landmark's covariance and pixel uncertainty (its largest position sigma seen from this range), once
+        # per landmark: a frame has about three candidate pairs for each.
+        lm_u, of_u = np.unique(lm, return_inverse=True)
+        cov_u = self.map.covariance(lm_u)
+        L_u = self.map.p_ned_m[lm_u].astype(float)
+        range_u_m = np.linalg.norm(L_u - c, axis=1)
+        sigma_lm_px = (np.sqrt(np.linalg.eigvalsh(cov_u)[:, -1]) / range_u_m * self.camera.focal_px)[of_u]
+        range_m = range_u_m[of_u]
         radius = np.minimum(3.0 * np.hypot(sigma_px[fi] * 2.0, sigma_lm_px), cfg.match_radius_px)
         d_shifted = np.linalg.norm(offsets - shift, axis=1)
-        m2 = ray_mahalanobis2(L, cov, c, rays[fi], self._sigma_perp(range_m, sigma_px[fi]))
+        m2 = ray_mahalanobis2(L_u[of_u], cov_u[of_u], c, rays[fi], self._sigma_perp(range_m, sigma_px[fi]))
         ok = (d_shifted <= radius) & (m2 <= cfg.gate_chi2)
         fi, ci, ham, m2, d_shifted = fi[ok], ci[ok], ham[ok], m2[ok], d_shifted[ok]
         # Greedy one-to-one assignment, nearest first, then best descriptor.
         order = np.lexsort((ham, d_shifted))
-        used_f, used_c = set(), set()
-        chosen = []
-        for k in order:
-            f, cc = int(fi[k]), int(ci[k])
-            if f in used_f or cc in used_c:
-                continue
-            used_f.add(f)
-            used_c.add(cc)
-            chosen.append(k)
-        if not chosen:
+        chosen = order[greedy_one_to_one(fi[order], ci[order])]
+        if len(chosen) == 0:
             return none
-        chosen = np.array(chosen, int)
         return fi[chosen], cand[ci[chosen]], m2[chosen]
 
     @staticmethod
-    def _common_shift(offsets_px: np.ndarray, established: np.ndarray, agree_px: float = 2.0) -> np.ndarray:
-        """The pixel shift most established candidate pairs agree on (their mean within ``agree_px``), or zero."""
+    def _common_shift(offsets_px: np.ndarray, established: np.ndarray, agree_px: float = 2.0, exact_votes: int = 64) -> np.ndarray:
+        """The pixel shift most established candidate pairs agree on (the mean of the offsets within ``agree_px``
+        of the offset with the most such neighbours, itself included), or zero when fewer than 3 agree.
+
+        Counting every offset's neighbours costs the cluster's size squared, and most of a frame's pairs are in
+        that cluster; so the counts are first read off a histogram (bins ``agree_px / 4`` wide, summed over a
+        disk of ``agree_px``), and only the ``exact_votes`` offsets it counts highest are counted exactly. The
+        first offset of the most neighbours among those is the one an exact count of every offset finds unless
+        the histogram's rounding ranks it below ``exact_votes`` others, which takes a broad cluster of many
+        near-equal counts, whose shifts differ by a fraction of a pixel.
+        """
         off = offsets_px[established]
         if len(off) < 3:
             return np.zeros(2)
-        votes = cKDTree(off).query_ball_point(off, agree_px, return_length=True)  # pairs within agree_px, itself included
-        best = int(np.argmax(votes))
-        if votes[best] < 3:
+        bin_px, r_bins = agree_px / 4.0, 4
+        lo = off.min(axis=0) - (r_bins + 1) * bin_px
+        idx = np.floor((off - lo) / bin_px).astype(np.int64)
+        h, w = idx.max(axis=0) + r_bins + 2
+        hist = np.bincount(idx[:, 0] * w + idx[:, 1], minlength=h * w).reshape(h, w).astype(np.float32)
+        approx = cv2.filter2D(hist, -1, _disk(r_bins), borderType=cv2.BORDER_CONSTANT)[idx[:, 0], idx[:, 1]]
+        cand = np.arange(len(off)) if len(off) <= exact_votes else np.sort(np.argpartition(-approx, exact_votes - 1)[:exact_votes])
+        dn = off[cand, 0, None] - np.ascontiguousarray(off[:, 0])
+        de = off[cand, 1, None] - np.ascontiguousarray(off[:, 1])
+        dn *= dn
+        de *= de
+        dn += de
+        votes = (dn <= agree_px * agree_px).sum(axis=1)
+        best = int(cand[np.argmax(votes)])
+        if votes.max() < 3:
             return np.zeros(2)
         return off[np.linalg.norm(off - off[best], axis=1) <= agree_px].mean(axis=0)
+
+
+def _disk(r: int) -> np.ndarray:
+    """A (2r+1, 2r+1) float32 kernel of ones within ``r`` of its centre."""
+    y, x = np.mgrid[-r : r + 1, -r : r + 1]
+    return (x * x + y * y <= r * r).astype(np.float32)
+
+
+def greedy_one_to_one(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The positions of the pairs ``(a[k], b[k])``, taken in order, that a greedy one-to-one assignment keeps (a
+    pair is kept unless an earlier kept pair has its ``a`` or its ``b``), ascending.
+
+    In rounds rather than pair by pair: a pair that is the first remaining one of both its ``a`` and its ``b`` is
+    kept by the sequential greedy too (everything before it that shares either was dropped for a kept pair
+    still earlier), so each round keeps all such pairs and drops the pairs they block; the first remaining pair
+    always qualifies. The same pairs as the loop, in a few rounds of array work.
+    """
+    k = np.arange(len(a))
+    kept = []
+    while len(k):
+        ak, bk = a[k], b[k]
+        first = np.zeros(len(k), bool)
+        first[np.unique(ak, return_index=True)[1]] = True
+        first_b = np.zeros(len(k), bool)
+        first_b[np.unique(bk, return_index=True)[1]] = True
+        keep = first & first_b
+        kept.append(k[keep])
+        k = k[~(np.isin(ak, ak[keep]) | np.isin(bk, bk[keep]))]
+    return np.sort(np.concatenate(kept)) if kept else np.zeros(0, np.int64)
