@@ -215,7 +215,8 @@ def _bench(args) -> int:
         sizes = sizes or (5_000, 20_000)
     sizes = sizes or BenchConfig.map_sizes
     reported = args.reported_map or (100_000 if 100_000 in sizes else sizes[len(sizes) // 2])
-    cfg = BenchConfig(fps=args.fps, mapping_fps=args.mapping_fps, seed=args.seed, map_sizes=sizes, reported_map=reported)
+    cfg = BenchConfig(alt_m=args.altitude, fps=args.fps, mapping_fps=args.mapping_fps, seed=args.seed, map_sizes=sizes, reported_map=reported,
+                      world=args.world)
     methods = () if args.no_baseline else (_load_baseline(load_pipeline_config(args.config)),)
     t0 = time.monotonic()
 
@@ -623,7 +624,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="time the pipeline per frame on one thread, with maps up to a million landmarks, beside the thesis' method")
     p.add_argument("--json", help="write the figures as JSON to this file")
     p.add_argument("--config", help="pipeline config YAML (default: built-in defaults)")
-    p.add_argument("--sim-config", help="simulation config YAML (default: built-in defaults)")
+    p.add_argument("--sim-config", help="simulation config YAML (default: built-in defaults); its surveys are the flights timed")
+    p.add_argument("--world", help="a world by name or YAML file (an orthophoto world, say) instead of the seeded gravel and four cubes")
+    p.add_argument("--altitude", type=_positive(float), default=15.0, help="height of both flights above the ground, m (default 15)")
     p.add_argument("--fps", type=_positive(float), default=2.0, help="frames per second of the positioning flight (default 2)")
     p.add_argument("--mapping-fps", type=_positive(float), default=1.0, help="frames per second of the mapping survey (default 1)")
     p.add_argument("--seed", type=int, default=1, help="seed of the world, flights and padding (default 1)")

@@ -49,7 +49,7 @@ from auxgps.sim.flight import SimConfig, Telemetry, fly, imu_bias, lawnmower_way
 from auxgps.sim.sensors import Sensors
 from auxgps.sim.render import Renderer
 from auxgps.sim.texture import gravel_texture
-from auxgps.sim.world import Cube, World, _color_to_bgr
+from auxgps.sim.world import Cube, World, _color_to_bgr, load_world
 
 STAGES = ("detection", "matching", "solving", "filtering")
 
@@ -65,7 +65,8 @@ class BenchConfig:
     mapping survey (1 keeps the survey's map under 10 thousand landmarks, the smallest padded size, while every
     ground point is still seen in some 17 frames per leg); ``map_sizes`` landmark counts the
     map is padded to; ``reported_map`` the size whose figures are the headline ``positioning`` ones;
-    ``texture_m_per_px`` ground texture scale, m/px; ``output_rate_hz`` the GPS_INPUT rate.
+    ``texture_m_per_px`` ground texture scale, m/px; ``output_rate_hz`` the GPS_INPUT rate; ``world`` a world
+    file (an orthophoto world, say) flown instead of the gravel and cubes, its surveys those of the sim config.
     """
 
     alt_m: float = 15.0
@@ -76,6 +77,7 @@ class BenchConfig:
     reported_map: int = 100_000
     texture_m_per_px: float = 0.02
     output_rate_hz: float = 10.0
+    world: str | None = None  # a world file or name (auxgps.sim.world.load_world) instead of the gravel and cubes
 
 
 class Method(Protocol):
@@ -135,7 +137,9 @@ def bench_report(fig: dict) -> str:
     def m(x):
         return "-" if x is None else f"{x:.3f}"
 
+    bc = fig["config"]["bench"]
     lines = [
+        f"world: {bc.get('world') or 'gravel and four 0.5 m cubes'}, at {bc['alt_m']:g} m, frames at 1280x720 on one thread",
         f"machine: {fig['machine']['cpu']}, load average at start {fig['machine']['load_average']}, at end {fig['machine_end']['load_average']}",
         f"positioning frames ({pos['frames']}, map of {pos['map_landmarks']} landmarks, {pos['features_per_frame']:.0f} features/frame): "
         f"median {ms(pos['median_ms'])} ms, p99 {ms(pos['p99_ms'])} ms, min {ms(pos['min_ms'])}, max {ms(pos['max_ms'])} "
@@ -465,9 +469,9 @@ def run_bench(pipeline: PipelineConfig, sim: SimConfig, cfg: BenchConfig, method
     say = progress or (lambda *a, **k: None)
     seq = np.random.SeedSequence(cfg.seed)
     seq_map, seq_pos, seq_pad = seq.spawn(3)
-    world = bench_world(sim, cfg)
+    world = load_world(cfg.world) if cfg.world else bench_world(sim, cfg)
 
-    say("mapping flight")
+    say(f"mapping flight over {world.source or world.description} at {cfg.alt_m:g} m")
     real, map_rows, map_feat, method_map_rows = _map_flight(world, pipeline, sim, cfg, methods, seq_map, progress and (lambda: say(None)))
     say("positioning flight (rendering)")
     script = _positioning_script(world, pipeline, sim, cfg, seq_pos, progress and (lambda: say(None)))
