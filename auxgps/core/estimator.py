@@ -41,7 +41,7 @@ import numpy as np
 from auxgps.config import PipelineConfig
 from auxgps.core.camera import camera_from_config
 from auxgps.core.events import Attitude, Frame, Gps1, Imu, Position
-from auxgps.core.features import FeatureDetector, Features
+from auxgps.core.features import FeatureDetector, Features, to_gray
 from auxgps.core.frame_check import FrameCheck
 from auxgps.core.fusion import FusedEstimate, GateDecision, ImuSample, NavFilter
 from auxgps.core.geometry import LocalFrame, R_body_cam_from_mount, R_ned_body_from_euler
@@ -422,14 +422,14 @@ class Estimator:
         return FrameJob(frame, R, alt, PositionPrior(est.p_ned_m, est.sigma_h_worst_m), mapping, p_gps,
                         float(np.hypot(est.v_ned_m_s[0], est.v_ned_m_s[1])), heading)
 
-    def _check_frame(self, job: FrameJob) -> tuple[str | None, str | None]:
+    def _check_frame(self, job: FrameJob, grey: np.ndarray) -> tuple[str | None, str | None]:
         """The frame's fault (None: fit to locate from) and a line for the events log when a fault begins or ends
         or the frame rate falls."""
         t = job.frame.t_s
         # The image's apparent speed at its centre, px/s (None: unknown, no filter)
         gsd_m = max(job.alt_above_origin_m, 1.0) / self.camera.focal_px
         px_per_s = job.speed_h_m_s / gsd_m if job.speed_h_m_s is not None else None
-        fault = self.frame_check.check(t, job.frame.image_bgr, px_per_s)
+        fault = self.frame_check.check(t, grey, px_per_s)
         kind = fault.split(":")[0].split(" (")[0] if fault else None
         note = None
         if kind != self._frame_fault:
@@ -441,7 +441,9 @@ class Estimator:
         """Check the frame, detect, then map (while GPS1 is trusted) and locate. Reads and changes only the map,
         the frame and the frame check's memory."""
         sw = self.stopwatch
-        fault, note = self._check_frame(job)
+        with sw("checking"):
+            grey = to_gray(job.frame.image_bgr)  # once for the check and the detector; a malformed frame is named here
+            fault, note = self._check_frame(job, grey)
         if fault is not None:
             nothing = Features(np.zeros((0, 2)), np.zeros((0, self.landmarks.descriptors.shape[1]), np.uint8), np.zeros(0, int))
             return FrameWork(job, nothing, None, NoFix(job.frame.t_s, fault), note)
@@ -459,7 +461,7 @@ class Estimator:
             cand = cand[self.landmarks.source[cand] == 0]
         scale = 1.0 if job.mapping else self.localiser.detection_scale(job.alt_above_origin_m, job.prior, cand if len(cand) else prior_cand)
         with sw("detection"):
-            feats = self.detector.detect(job.frame.image_bgr, job.R_ned_body @ self.R_body_cam, scale)
+            feats = self.detector.detect(grey, job.R_ned_body @ self.R_body_cam, scale)
         mapped = None
         heading_sigma = None
         if job.heading is not None:
@@ -472,7 +474,7 @@ class Estimator:
                 prior_feats = feats
                 if abs(np.log(prior_scale / scale)) > np.log(self.cfg.detector.scale_factor):  # another scale: detected again
                     with sw("detection"):
-                        prior_feats = self.detector.detect(job.frame.image_bgr, job.R_ned_body @ self.R_body_cam, prior_scale)
+                        prior_feats = self.detector.detect(grey, job.R_ned_body @ self.R_body_cam, prior_scale)
                 on_prior = self.localiser.locate(prior_feats, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior,
                                                  prior_cand, heading_sigma)
                 if located is None or isinstance(on_prior, Fix):

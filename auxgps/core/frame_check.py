@@ -85,11 +85,10 @@ class FrameCheck:
         if bright > cfg.max_saturated_share:
             return f"image {bright:.0%} saturated (sun in view?)"
         half = cv2.pyrDown(full).astype(np.float32)
-        lap = cv2.Laplacian(half, cv2.CV_32F)
-        energy = float(np.mean(lap * lap))
+        energy = cv2.norm(cv2.Laplacian(half, cv2.CV_32F), cv2.NORM_L2SQR) / half.size  # mean squared Laplacian
         if energy >= cfg.min_edge_energy:
             lap_smooth = cv2.Laplacian(cv2.GaussianBlur(half, (0, 0), 1.0), cv2.CV_32F)
-            sharpness = energy / max(float(np.mean(lap_smooth * lap_smooth)), 1e-9)
+            sharpness = energy / max(cv2.norm(lap_smooth, cv2.NORM_L2SQR) / half.size, 1e-9)
             if sharpness < cfg.min_sharpness:
                 return f"image blurred (sharpness {sharpness:.2f}, under {cfg.min_sharpness:g})"
         return None

@@ -5,7 +5,9 @@ gravel ground and the thesis' four 0.5 m cubes); every frame is rendered before 
 never counted. Each frame then goes through :class:`auxgps.core.estimator.Estimator`, the code ``auxgps run``
 flies, with a :class:`StageClock` passed in as its stopwatch; the stages are exclusive times:
 
-- detection: :meth:`FeatureDetector.detect` (grey conversion, ORB, Harris filter, sub-pixel refinement);
+- checking: the frame's grey conversion and :class:`auxgps.core.frame_check.FrameCheck` (frozen, covered,
+  blinded, blurred);
+- detection: :meth:`FeatureDetector.detect` (ORB, Harris filter, sub-pixel refinement);
 - matching: finding candidate landmarks (the spatial index) and pairing features with them;
 - solving: the rest of :meth:`Localiser.locate` (consensus, refinement, rival check) and, for a mapping frame,
   the rest of :meth:`Mapper.process` (projection, fusing observations, adding landmarks) and the self-check
@@ -51,7 +53,7 @@ from auxgps.sim.render import Renderer
 from auxgps.sim.texture import gravel_texture
 from auxgps.sim.world import Cube, World, _color_to_bgr, load_world
 
-STAGES = ("detection", "matching", "solving", "filtering")
+STAGES = ("checking", "detection", "matching", "solving", "filtering")
 
 #: The thesis' four 0.5 m cubes (config/worlds/cubes4_0.5m_different.yaml): (north, east, colour, yaw).
 _CUBES = ((2.0, 1.0, "red", 0.0), (-5.0, -4.0, "blue", 20.0), (-6.0, 6.0, "green", 35.0), (5.0, -6.0, "white", 50.0))
@@ -207,7 +209,7 @@ class StageClock:
         """The stage times since the last take, as the benchmark's stages (detection, matching, solving,
         filtering), ms."""
         ms, self.ms = self.ms, {}
-        row = {"detection": ms.get("detection", 0.0), "matching": ms.get("matching", 0.0),
+        row = {"checking": ms.get("checking", 0.0), "detection": ms.get("detection", 0.0), "matching": ms.get("matching", 0.0),
                "solving": ms.get("locating", 0.0) + ms.get("mapping", 0.0)}
         if "filtering" in ms:
             row["filtering"] = ms["filtering"]
