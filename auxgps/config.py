@@ -64,6 +64,9 @@ class DetectorConfig:
     # Tried first: a frame that fills n_features at this FAST threshold keeps those (its strongest corners, found
     # in less time); one that does not is detected again at fast_threshold. Equal to fast_threshold: one pass.
     fast_threshold_first: Annotated[int, Field(ge=1, le=255)] = 30
+    # Thresholds tried, evenly from fast_threshold_first down to fast_threshold (2: those two alone). A frame
+    # starts at the one that filled the budget in the frame before.
+    fast_threshold_rungs: Annotated[int, Field(ge=2, le=16)] = 3
     n_levels: Annotated[int, Field(ge=1, le=16)] = 2
     scale_factor: Annotated[float, Field(gt=1.0, le=4.0)] = 1.3
     edge_threshold_px: Annotated[int, Field(ge=1, le=200)] = 16

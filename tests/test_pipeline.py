@@ -283,7 +283,7 @@ def test_a_frame_rich_in_corners_gets_the_same_features_from_the_first_higher_th
     assert cfg.fast_threshold_first > cfg.fast_threshold
     image = gravel_image(contrast=1.0)
     two_pass = FeatureDetector(cfg)
-    assert len(two_pass.orb_first.detect(image)) >= cfg.n_features  # the first threshold fills the budget here
+    assert len(two_pass.ladder[0].detect(image)) >= cfg.n_features  # the first threshold fills the budget here
     one_pass = FeatureDetector(parse_as(type(cfg), dict(fast_threshold_first=cfg.fast_threshold), "test"))
     R = R_ned_body_from_euler(0.0, 0.0, 0.4) @ R_BODY_CAM_DOWN
     uv_two, desc_two = sorted_features(two_pass.detect(image, R))
@@ -296,13 +296,52 @@ def test_a_frame_poor_in_corners_is_detected_again_at_the_lower_threshold(pipeli
     cfg = pipeline.detector
     image = gravel_image(contrast=0.2)  # corners the floor sees, and the first threshold not
     two_pass = FeatureDetector(cfg)
-    assert len(two_pass.orb_first.detect(image)) < 0.1 * cfg.n_features
+    assert len(two_pass.ladder[0].detect(image)) < 0.1 * cfg.n_features
     one_pass = FeatureDetector(parse_as(type(cfg), dict(fast_threshold_first=cfg.fast_threshold), "test"))
     uv_two, desc_two = sorted_features(two_pass.detect(image))
     assert len(uv_two) >= 0.9 * cfg.n_features
     uv_one, desc_one = sorted_features(one_pass.detect(image))
     np.testing.assert_array_equal(uv_two, uv_one)
     np.testing.assert_array_equal(desc_two, desc_one)
+
+
+class _CountingOrb:
+    """An ORB whose detect calls are counted (cv2's own objects take no attributes)."""
+
+    def __init__(self, orb):
+        self.orb, self.calls = orb, 0
+
+    def detect(self, image, mask):
+        self.calls += 1
+        return self.orb.detect(image, mask)
+
+    def __getattr__(self, name):
+        return getattr(self.orb, name)
+
+
+def test_a_frame_filled_at_a_middle_threshold_keeps_its_features_and_the_next_frame_starts_there(pipeline):
+    """Ground where the first threshold never fills the budget and a middle one does (Seneca's fields): those
+    features are the floor's own, and later frames start at the middle threshold, trying the first again only
+    after a run of frames filled there; frames poorer still move the start down."""
+    cfg = pipeline.detector
+    assert cfg.fast_threshold_rungs >= 3
+    image = gravel_image(contrast=0.44)  # the middle threshold finds twice each pyramid level's share here
+    detector = FeatureDetector(cfg)
+    assert len(detector.ladder[0].detect(image)) < cfg.n_features <= len(detector.ladder[1].detect(image))
+    floor = FeatureDetector(parse_as(type(cfg), dict(fast_threshold_first=cfg.fast_threshold), "test"))
+    uv_floor, desc_floor = sorted_features(floor.detect(image))
+    uv, desc = sorted_features(detector.detect(image))
+    np.testing.assert_array_equal(uv, uv_floor)
+    np.testing.assert_array_equal(desc, desc_floor)
+    detector.ladder = [_CountingOrb(o) for o in detector.ladder]
+    for _ in range(FeatureDetector._CLIMB_AFTER):
+        detector.detect(image)
+    assert [o.calls for o in detector.ladder] == [0, FeatureDetector._CLIMB_AFTER, 0]
+    detector.detect(image)  # a run filled at the middle: the first threshold is tried again, once
+    assert [o.calls for o in detector.ladder] == [1, FeatureDetector._CLIMB_AFTER + 1, 0]
+    detector.detect(gravel_image(contrast=0.2))  # poorer ground: down to the floor
+    detector.detect(gravel_image(contrast=0.2))
+    assert [o.calls for o in detector.ladder] == [1, FeatureDetector._CLIMB_AFTER + 2, 2]
 
 
 def test_a_first_threshold_below_the_floor_is_a_named_error():

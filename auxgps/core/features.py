@@ -39,7 +39,16 @@ class Features:
 
 
 class FeatureDetector:
-    """ORB keypoints and descriptors, as configured by a :class:`auxgps.config.DetectorConfig`."""
+    """ORB keypoints and descriptors, as configured by a :class:`auxgps.config.DetectorConfig`.
+
+    FAST thresholds are tried from ``fast_threshold_first`` down to ``fast_threshold`` in ``fast_threshold_rungs``
+    even steps; the first whose keypoints fill the budget of ``n_features`` gives them (see :func:`detect`). A
+    frame starts at the rung that filled the frame before (ground changes slowly), and after ``_CLIMB_AFTER``
+    frames in a row filled there, one rung higher: over ground where the first threshold never fills (Seneca's
+    fields), every frame would otherwise pay a failed pass before the one that counts.
+    """
+
+    _CLIMB_AFTER = 15
 
     def __init__(self, cfg) -> None:
         self.cfg = cfg
@@ -51,8 +60,12 @@ class FeatureDetector:
             patchSize=max(cfg.edge_threshold_px, 2),
             fastThreshold=threshold,
         )
-        self.orb = make(cfg.fast_threshold)
-        self.orb_first = make(cfg.fast_threshold_first) if cfg.fast_threshold_first > cfg.fast_threshold else None
+        thresholds = np.linspace(cfg.fast_threshold_first, cfg.fast_threshold, max(cfg.fast_threshold_rungs, 2))
+        self.thresholds = sorted({int(round(t)) for t in thresholds}, reverse=True)
+        self.ladder = [make(t) for t in self.thresholds]
+        self.orb = self.ladder[-1]
+        self._rung = 0  # where the next frame starts
+        self._filled_in_a_row = 0
 
     def detect(self, image: np.ndarray, R_ned_cam: np.ndarray | None = None, scale: float = 1.0) -> "Features":
         """Features of ``image``. With the camera's attitude ``R_ned_cam`` (and ``north_aligned`` set), every
@@ -69,14 +82,19 @@ class FeatureDetector:
         if scale < 1.0 and gray.size:
             size = (max(int(round(gray.shape[1] * scale)), 1), max(int(round(gray.shape[0] * scale)), 1))
             gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
-        feats = detect(self.orb, gray, self.cfg.min_harris, angle, self.orb_first)
+        start = self._rung
+        if start > 0 and self._filled_in_a_row >= self._CLIMB_AFTER:
+            start, self._filled_in_a_row = start - 1, 0
+        feats, filled = detect(self.ladder[start:], gray, self.cfg.min_harris, angle)
+        rung = start + filled
+        self._filled_in_a_row = self._filled_in_a_row + 1 if rung == self._rung else 0
+        self._rung = min(rung, len(self.ladder) - 1)
         if self.cfg.subpixel_window_px > 0 and len(feats):
             feats = refine_subpixel(gray, feats, self.cfg.subpixel_window_px)
         if scale < 1.0:
             # Pixel centres: detection pixel u covers full-resolution [u / s, (u + 1) / s).
             feats = Features((feats.uv_px + 0.5) / scale - 0.5, feats.descriptors, feats.octave, scale)
         return feats
-
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -98,17 +116,16 @@ def north_angle_deg(R_ned_cam: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(north_cam[1], north_cam[0])) % 360.0)
 
 
-def detect(
-    detector: cv2.ORB, image: np.ndarray, min_harris: float = 0.0, angle_deg: float | None = None, first: cv2.ORB | None = None
-) -> Features:
-    """Detect and describe point features. An empty or featureless frame gives empty :class:`Features`.
+def detect(ladder: list[cv2.ORB], image: np.ndarray, min_harris: float = 0.0, angle_deg: float | None = None) -> tuple[Features, int]:
+    """Detect and describe point features; also the index in ``ladder`` of the detector whose keypoints were
+    kept. An empty or featureless frame gives empty :class:`Features`.
 
-    With ``first`` (the same ORB at a higher FAST threshold), keypoints are taken from it when it finds the full
-    budget of ``nfeatures``, and from ``detector`` otherwise. Per pyramid level, ORB takes the corners of highest
-    FAST score (twice the level's share), then the best of those by Harris score; a higher threshold only drops
-    corners of lower FAST score. So when twice each level's share passes it (as on textured ground and real
-    photos), the features are the same, found in less time (FAST is the largest part of ORB's); when only the
-    share passes, they are strong corners still; a frame poor in corners is detected as before.
+    ``ladder``: the same ORB at falling FAST thresholds. Keypoints are taken from the first that finds the full
+    budget of ``nfeatures``, else from the last. Per pyramid level, ORB takes the corners of highest FAST score
+    (twice the level's share), then the best of those by Harris score; a higher threshold only drops corners of
+    lower FAST score. So when twice each level's share passes it (as on textured ground and real photos), the
+    features are the same as the last one's, found in less time (FAST is the largest part of ORB's); when only the
+    share passes, they are strong corners still; a frame poor in corners is detected as at the last.
 
     Keypoints whose Harris score is not above ``min_harris`` are dropped: a negative score marks a point on a
     straight edge, which slides along the edge from view to view and is no point landmark. With ``angle_deg``,
@@ -119,21 +136,23 @@ def detect(
     gray = to_gray(image)
     if gray.size == 0:
         raise FrameError("frame is empty")
-    keypoints = first.detect(gray, None) if first is not None else ()
-    if len(keypoints) < detector.getMaxFeatures():
-        keypoints = detector.detect(gray, None)
+    for used, orb in enumerate(ladder):
+        keypoints = orb.detect(gray, None)
+        if len(keypoints) >= orb.getMaxFeatures():
+            break
+    detector = ladder[-1]
     keypoints = [kp for kp in keypoints if kp.response > min_harris]
     if not keypoints:
-        return Features.empty()
+        return Features.empty(), used
     if angle_deg is not None:
         for kp in keypoints:
             kp.angle = angle_deg
     keypoints, descriptors = detector.compute(gray, keypoints)
     if descriptors is None or not keypoints:
-        return Features.empty()
+        return Features.empty(), used
     uv = cv2.KeyPoint_convert(keypoints).astype(float)  # the keypoints' float32 positions, as kp.pt gives them
     octave = np.array([kp.octave for kp in keypoints], int)
-    return Features(uv, descriptors, octave)
+    return Features(uv, descriptors, octave), used
 
 
 def refine_subpixel(gray: np.ndarray, feats: Features, window_px: int) -> Features:
