@@ -430,12 +430,13 @@ class NavFilter:
             del hist[:k]
 
     def _rejected_run_agrees(self) -> bool:
-        """True when the last ``reinit_count`` rejected fixes, within ``reinit_window_s``, agree with each other
-        after the filter's own velocity is taken out: the filter, not the fixes, is what is wrong."""
+        """True when the last ``reinit_count`` rejected fixes or more, within ``reinit_window_s`` and spanning at
+        least ``reinit_min_span_s``, agree with each other after the filter's own velocity is taken out: the
+        filter, not the fixes, is what is wrong."""
         cfg = self.cfg
         run = [r for r in self._rejected_run if r[0] >= self._rejected_run[-1][0] - cfg.reinit_window_s]
         self._rejected_run[:] = run
-        if len(run) < cfg.reinit_count:
+        if len(run) < cfg.reinit_count or run[-1][0] - run[0][0] < cfg.reinit_min_span_s:
             return False
         v = self._ekf.x[3:5, 0]
         t_last, p_last, c_last, _ = run[-1]
