@@ -167,9 +167,10 @@ class FusionConfig:
     history_s: Annotated[float, Field(gt=0, le=5)] = 0.5
     reinit_count: Annotated[int, Field(ge=2)] = 5
     reinit_window_s: Positive = 3.0
-    # ... and span at least this long: consecutive frames fit the same landmarks with the same errors, so at 10
-    # frames a second five rejected fixes in half a second are one piece of evidence, not five (at 2 frames a
-    # second a run of five spans 2 s, as before).
+    # ... and, visual fixes, span at least this long: consecutive frames fit the same landmarks with the same
+    # errors, so at 10 frames a second five rejected fixes in half a second are one piece of evidence, not five
+    # (at 2 frames a second a run of five spans 2 s, as before). GPS readings need none: the supervisor reads
+    # their run as a jump or a drag of GPS1, and a later finding leaves more of the drag in the map.
     reinit_min_span_s: NonNegative = 1.5
     reinit_speed_sigma_m_s: Positive = 0.5
     # Without GPS1 or a filter (a restart mid-flight), this many fixes located without a prior, within

@@ -196,7 +196,7 @@ class NavFilter:
         else:
             decision = GateDecision(t_s, False, m2, f"innovation {np.sqrt(m2):.1f} sigma")
             self._rejected_run.append((t_s, p_ne_m, cov_ne_m2, prior_share))
-            if self._rejected_run_agrees():
+            if self._rejected_run_agrees(self.cfg.reinit_min_span_s if visual else 0.0):
                 self._rejected_run.clear()
                 if reinit:
                     self._take("reinit", t_s, (p_ne_m, cov_ne_m2, prior_share))
@@ -429,14 +429,15 @@ class NavFilter:
         if k > 0:
             del hist[:k]
 
-    def _rejected_run_agrees(self) -> bool:
+    def _rejected_run_agrees(self, min_span_s: float) -> bool:
         """True when the last ``reinit_count`` rejected fixes or more, within ``reinit_window_s`` and spanning at
-        least ``reinit_min_span_s``, agree with each other after the filter's own velocity is taken out: the
+        least ``min_span_s`` (visual fixes: ``reinit_min_span_s``; GPS readings, whose run the supervisor reads
+        as a jump or a drag, none), agree with each other after the filter's own velocity is taken out: the
         filter, not the fixes, is what is wrong."""
         cfg = self.cfg
         run = [r for r in self._rejected_run if r[0] >= self._rejected_run[-1][0] - cfg.reinit_window_s]
         self._rejected_run[:] = run
-        if len(run) < cfg.reinit_count or run[-1][0] - run[0][0] < cfg.reinit_min_span_s:
+        if len(run) < cfg.reinit_count or run[-1][0] - run[0][0] < min_span_s:
             return False
         v = self._ekf.x[3:5, 0]
         t_last, p_last, c_last, _ = run[-1]
