@@ -100,15 +100,22 @@ def test_too_old_fix_is_refused():
     assert not d.accepted and "older than the history" in d.reason
 
 
-def test_gate_rejects_outlier_then_reinitialises_on_a_consistent_run(caplog):
+def _fixes_jumping_5_m(n: int, visual: bool):
+    """A hovering filter given fixes at 10 a second at the origin, then from the 21st on 5 m north: the filter and
+    the decisions."""
     f = make(sigma_p=0.1, sigma_v=0.05)
     t = 0.0
     decisions = []
-    for k in range(30):
+    for k in range(n):
         t += 0.1
         for j in range(10):
             f.propagate(hover(t - 0.1 + 0.01 * (j + 1)))
-        decisions.append(f.update_position(t, np.array([0.0, 0.0]) if k < 20 else np.array([5.0, 0.0]), np.eye(2) * 0.01))
+        decisions.append(f.update_position(t, np.array([0.0, 0.0]) if k < 20 else np.array([5.0, 0.0]), np.eye(2) * 0.01, visual=visual))
+    return f, decisions
+
+
+def test_gate_rejects_outlier_then_reinitialises_on_a_consistent_run(caplog):
+    f, decisions = _fixes_jumping_5_m(30, visual=False)
     assert all(d.accepted for d in decisions[:20])
     assert not decisions[20].accepted and decisions[20].mahalanobis2 > 100
     assert f.n_reinit == 1 and any("re-initialised" in d.reason for d in decisions[20:25])
@@ -119,14 +126,7 @@ def test_gate_rejects_outlier_then_reinitialises_on_a_consistent_run(caplog):
 def test_visual_fixes_reinitialise_only_on_a_run_that_spans_the_minimum_time():
     """Visual fixes at 10 a second jump 5 m: consecutive frames share their errors, so five of them in half a
     second do not re-initialise the filter (GPS readings do: the test above); a run spanning reinit_min_span_s does."""
-    f = make(sigma_p=0.1, sigma_v=0.05)
-    t = 0.0
-    decisions = []
-    for k in range(45):
-        t += 0.1
-        for j in range(10):
-            f.propagate(hover(t - 0.1 + 0.01 * (j + 1)))
-        decisions.append(f.update_position(t, np.array([0.0, 0.0]) if k < 20 else np.array([5.0, 0.0]), np.eye(2) * 0.01, visual=True))
+    f, decisions = _fixes_jumping_5_m(45, visual=True)
     assert all(d.accepted for d in decisions[:20]) and not decisions[20].accepted
     assert f.n_reinit == 1
     k_reinit = next(k for k, d in enumerate(decisions) if "re-initialised" in d.reason)
