@@ -62,7 +62,8 @@ class DetectorConfig:
     n_features: Annotated[int, Field(ge=1, le=100000)] = 600  # at most this many per frame; the cube worlds give far fewer
     fast_threshold: Annotated[int, Field(ge=1, le=255)] = 10
     # Tried first: a frame that fills n_features at this FAST threshold keeps those (its strongest corners, found
-    # in less time); one that does not is detected again at fast_threshold. Equal to fast_threshold: one pass.
+    # in less time); one that does not is detected again at the next lower threshold (fast_threshold_rungs), down
+    # to fast_threshold. Equal to fast_threshold: one pass.
     fast_threshold_first: Annotated[int, Field(ge=1, le=255)] = 30
     # Thresholds tried, evenly from fast_threshold_first down to fast_threshold (2: those two alone). A frame
     # starts at the one that filled the budget in the frame before.

@@ -60,7 +60,7 @@ class FeatureDetector:
             patchSize=max(cfg.edge_threshold_px, 2),
             fastThreshold=threshold,
         )
-        thresholds = np.linspace(cfg.fast_threshold_first, cfg.fast_threshold, max(cfg.fast_threshold_rungs, 2))
+        thresholds = np.linspace(cfg.fast_threshold_first, cfg.fast_threshold, cfg.fast_threshold_rungs)
         self.thresholds = sorted({int(round(t)) for t in thresholds}, reverse=True)
         self.ladder = [make(t) for t in self.thresholds]
         self.orb = self.ladder[-1]
@@ -88,7 +88,7 @@ class FeatureDetector:
         feats, filled = detect(self.ladder[start:], gray, self.cfg.min_harris, angle)
         rung = start + filled
         self._filled_in_a_row = self._filled_in_a_row + 1 if rung == self._rung else 0
-        self._rung = min(rung, len(self.ladder) - 1)
+        self._rung = rung
         if self.cfg.subpixel_window_px > 0 and len(feats):
             feats = refine_subpixel(gray, feats, self.cfg.subpixel_window_px)
         if scale < 1.0:

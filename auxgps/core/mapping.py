@@ -222,15 +222,16 @@ def greedy_one_to_one(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     still earlier), so each round keeps all such pairs and drops the pairs they block; the first remaining pair
     always qualifies. The same pairs as the loop, in a few rounds of array work.
     """
+    def first_of_each(x: np.ndarray) -> np.ndarray:
+        first = np.zeros(len(x), bool)
+        first[np.unique(x, return_index=True)[1]] = True
+        return first
+
     k = np.arange(len(a))
     kept = []
     while len(k):
         ak, bk = a[k], b[k]
-        first = np.zeros(len(k), bool)
-        first[np.unique(ak, return_index=True)[1]] = True
-        first_b = np.zeros(len(k), bool)
-        first_b[np.unique(bk, return_index=True)[1]] = True
-        keep = first & first_b
+        keep = first_of_each(ak) & first_of_each(bk)
         kept.append(k[keep])
         k = k[~(np.isin(ak, ak[keep]) | np.isin(bk, bk[keep]))]
     return np.sort(np.concatenate(kept)) if kept else np.zeros(0, np.int64)

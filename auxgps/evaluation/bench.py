@@ -206,7 +206,7 @@ class StageClock:
                 self._stack[-1][1] = now
 
     def take(self) -> dict[str, float]:
-        """The stage times since the last take, as the benchmark's stages (detection, matching, solving,
+        """The stage times since the last take, as the benchmark's stages (checking, detection, matching, solving,
         filtering), ms."""
         ms, self.ms = self.ms, {}
         row = {"checking": ms.get("checking", 0.0), "detection": ms.get("detection", 0.0), "matching": ms.get("matching", 0.0),
