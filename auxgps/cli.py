@@ -29,6 +29,11 @@ def _fmt(x, unit="", digits=3) -> str:
     return f"{x}{unit}"
 
 
+def _heights(h: dict) -> str:
+    lo, hi = h["min_m"], h["max_m"]
+    return f"{lo:.0f} m" if hi - lo < 1.0 else f"{lo:.0f} to {hi:.0f} m (median {h['median_m']:.0f})"
+
+
 def summary_table(summary: dict) -> str:
     """The on-screen table of one scenario's pooled figures."""
     lm, fx, ma, ms = summary["landmarks"], summary["fixes"], summary["mission_average"], summary["per_frame_ms"]
@@ -41,7 +46,8 @@ def summary_table(summary: dict) -> str:
     table = tabulate(rows, headers=["metric (m)", "count", "RMS", "median", "p95", "max"], tablefmt="simple")
     sc = summary["scenario"]
     lines = [
-        f"{Path(sc['world']).name} at {sc['altitude_m']:g} m, {sc['runs']} run(s) at {sc['fps']:g} frames/s"
+        f"{Path(sc['world']).name} at {_fmt(sc['altitude_m'], ' m', 0) if sc['altitude_m'] else 'the mission heights'},"
+        f" {sc['runs']} run(s) at {sc['fps']:g} frames/s"
         + (f" (survey mapped at {sc['mapping_fps']:g})" if sc.get("mapping_fps", sc["fps"]) != sc["fps"] else "")
         + f", seeds {sc['seeds']}",
         table,
@@ -49,8 +55,12 @@ def summary_table(summary: dict) -> str:
         f"   fixes over 0.5 m: {fx['over_0_5m']}",
         f"filter: NEES {_fmt(fu['nees_mean'])} (2 expected), true error inside the reported 3 sigma "
         f"{_fmt(fu['within_3sigma'])}; fixes gated {summary['gate']['rejected']}, accepted over 0.5 m "
-        f"{summary['gate']['accepted_over_0_5m']}, re-initialisations {summary['gate']['reinitialisations']}; "
-        f"GPS-denied {summary['denied_s']:.0f} s",
+        f"{summary['gate']['accepted_over_0_5m']} (largest {_fmt(summary['gate']['accepted_max_m'], ' m')}),"
+        f" re-initialisations {summary['gate']['reinitialisations']}; "
+        f"GPS-denied {summary['denied_s']:.0f} s"
+        + (f" at {_heights(summary['height_agl'])} above the ground" if summary.get("height_agl") else ""),
+        f"GPS_INPUT while denied: 3D fix {_fmt(summary['gps_input']['fix_3d_share'])} of {summary['gps_input']['outputs']}"
+        f" outputs, their true error inside 3x the reported accuracy {_fmt(summary['gps_input']['within_3_reported'])}",
         f"dead reckoning: longest stretch without an accepted fix {_fmt(fu['longest_gap_s'], ' s', 1)}; the fused maximum"
         f" came {_fmt(fu['since_fix_at_max_s'], ' s', 1)} after one; velocity error as {fu['long_gaps']['count']} stretches"
         f" of {fu['long_gaps']['min_s']:g} s or more began: RMS {_fmt(fu['long_gaps']['velocity_error_rms_m_s'], ' m/s')},"
@@ -59,6 +69,15 @@ def summary_table(summary: dict) -> str:
         f"time per frame: median {_fmt(ms['median'], ' ms')}, p99 {_fmt(ms['p99'], ' ms')}"
         f" (features per frame: {_fmt(summary['features_per_frame_median'], '', 0)})",
     ]
+    if summary.get("featureless"):
+        f = summary["featureless"]
+        lines.append(
+            f"featureless ground: {f['crossings']} crossing(s), {f['seconds_over']:.0f} s over it; accepted fixes there"
+            f" {f['accepted_fixes']} (max {_fmt(f['accepted_fix_max_m'], ' m')}); outputs inside 3x the reported accuracy"
+            f" {_fmt(f['within_3_reported'])}; GPS_INPUT said no fix in {f['said_no_fix']} crossing(s), at most"
+            f" {_fmt(f['no_fix_after_s'], ' s', 1)} after entering, and had a 3D fix again at most"
+            f" {_fmt(f['fix_3d_again_s'], ' s', 1)} after leaving"
+        )
     if summary.get("blackout"):
         b = summary["blackout"]
         lines.append(
@@ -76,6 +95,8 @@ def _eval(args) -> int:
     from auxgps.sim.faults import load_fault_plan
     from auxgps.sim.flight import load_sim_config
 
+    if args.altitude is None and not args.mission:
+        raise ConfigError("--altitude is needed without --mission (a mission may fly its own heights)")
     if args.map and not args.mission:
         raise ConfigError("--map goes with --mission: the estimator of a mission starts from these maps")
     if bool(args.mission) != (args.gps_lost_at_waypoint is not None):
@@ -565,13 +586,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="fly a mapping survey then a positioning flight over a simulated world; score them")
     p.add_argument("--world", required=True, help="a world by name (one_cube_1m, cubes4_0.5m_different, ...) or a world YAML file")
-    p.add_argument("--altitude", type=_positive(float), required=True, help="survey height above ground, m")
+    p.add_argument("--altitude", type=_positive(float), help="survey height above ground, m (with --mission: every height of "
+                                                                "the mission at this, default its own heights)")
     p.add_argument("--runs", type=_positive(int), default=1, help="seeded runs (default 1)")
     p.add_argument("--faults", help="a YAML list of faults to inject into the positioning flight (auxgps/sim/faults.py; "
                                     "config/faults/all.yaml has one of each)")
     p.add_argument("--mission", help="fly this mission (.waypoints, QGC WPL 110, or a QGroundControl .plan) once instead: "
-                                     "mapping with GPS1, GPS1 lost at --gps-lost-at-waypoint, the rest scored; every "
-                                     "height at --altitude")
+                                     "mapping with GPS1, GPS1 lost at --gps-lost-at-waypoint, the rest scored")
     p.add_argument("--speed-m-s", type=_positive(float), default=5.0, help="with --mission: its speed, m/s (default 5)")
     p.add_argument("--map", action="append", help="with --mission: start from this map (a prior map from auxgps map build "
                                                   "--orthophoto, or a flight's); repeatable")

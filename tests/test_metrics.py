@@ -84,8 +84,10 @@ def test_only_fixes_the_filter_kept_count_as_accepted():
     """Three fixes 0.6 m off: one kept, one gated out, one that never reached the filter (NaN arrival)."""
     r = record([10.0, 10.1], np.zeros((2, 2)), [0.1, 0.1], [10.0, 10.05, np.nan], [False, True, False])
     r.fix_err_ne_m[:] = [0.0, 0.6]
+    r.fix_err_ne_m[1] = [0.0, 0.9]  # the gated one: not the largest accepted
     gate = summarize([r])["gate"]
     assert gate["accepted_over_0_5m"] == 1 and gate["rejected"] == 1
+    assert gate["accepted_max_m"] == pytest.approx(0.6)
 
 
 def test_a_run_without_positioning_frames_is_summarised_and_printed():
@@ -96,3 +98,37 @@ def test_a_run_without_positioning_frames_is_summarised_and_printed():
     assert summary["features_per_frame_median"] is None
     summary["scenario"] = {"world": "w.yaml", "altitude_m": 15.0, "runs": 1, "fps": 2.0, "seeds": [1]}
     assert "(features per frame: -)" in summary_table(summary)
+
+
+def test_a_featureless_crossing_is_scored_from_what_gps_input_said():
+    """Denied from 10 s, outputs every second to 30 s; over a featureless patch from 12 to 20 s. GPS_INPUT keeps a
+    3D fix to 15 s then says no fix to 24 s; the true error outgrows three times the reported accuracy at 20 s only.
+    One fix is accepted over the patch (captured at 12 s, 0.3 m off)."""
+    t = np.arange(10.0, 31.0, 1.0)
+    err = np.zeros((len(t), 2))
+    err[:, 0] = np.where(t == 20.0, 1.0, 0.1)
+    r = record(t, err, np.full(len(t), 0.3), [12.0, 24.0], [False, False])
+    r.fix_err_ne_m[0] = [0.3, 0.0]
+    r.fix_over_patch = np.array([True, False])
+    r.fused_over_patch = (t >= 12.0) & (t <= 20.0)
+    r.fused_height_agl_m = np.full(len(t), 40.0)
+    r.gps_fix_type = np.where((t > 15.0) & (t < 24.0), 1, 3)
+    r.gps_h_acc_m = np.full(len(t), 0.3)
+    summary = summarize([r])
+    f = summary["featureless"]
+    assert f["crossings"] == 1 and f["seconds_over"] == pytest.approx(8.0)
+    assert f["accepted_fixes"] == 1 and f["accepted_fix_max_m"] == pytest.approx(0.3)
+    assert f["within_3_reported"] == pytest.approx(8 / 9)
+    assert f["said_no_fix"] == 1 and f["no_fix_after_s"] == pytest.approx(4.0)
+    assert f["fix_3d_again_s"] == pytest.approx(4.0)
+    g = summary["gps_input"]
+    assert g["outputs"] == 21 and g["fix_3d_share"] == pytest.approx(13 / 21) and g["within_3_reported"] == 1.0
+    assert summary["height_agl"] == {"min_m": 40.0, "median_m": 40.0, "max_m": 40.0}
+    summary["scenario"] = {"world": "w.yaml", "altitude_m": None, "runs": 1, "fps": 2.0, "seeds": [1]}
+    table = summary_table(summary)
+    assert "at the mission heights" in table and "featureless ground: 1 crossing(s), 8 s over it" in table
+
+
+def test_a_world_without_patches_has_no_featureless_figures():
+    r = record([10.0, 10.1], np.zeros((2, 2)), [0.1, 0.1], [10.0], [False])
+    assert summarize([r])["featureless"] is None

@@ -6,8 +6,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
+import yaml
 
 from auxgps.core.geometry import LocalFrame
 from auxgps.errors import ConfigError
@@ -151,3 +153,40 @@ def test_the_sitl_tool_uploads_items_as_the_file_numbers_them_at_the_height_aske
     assert (items[2].x, items[2].y) == (473977150, 85454610)
     own = sitl_flight.mission_items(m, (47.397742, 8.545594, 488.0), None)
     assert [i.z for i in own[1:-1]] == [15.0] * 5
+
+
+def test_eval_crosses_a_featureless_lake_says_so_and_positions_again_after_it(tmp_path):
+    """Out along a strip of blotchy ground at 15 m and 4 m/s, GPS1 lost at the far end, and back across an 80 m
+    lake (about 16 s with no feature in view) to ground mapped on the way out. The mission flies its own heights
+    (no --altitude)."""
+    rng = np.random.default_rng(7)
+    texture = sum(cv2.resize(rng.normal(0.0, 1.0, (1000 // k, 4800 // k)), (4800, 1000), interpolation=cv2.INTER_CUBIC)
+                  for k in (1, 4, 16, 64))  # 240 m east-west by 50 m, 5 cm per pixel
+    cv2.imwrite(str(tmp_path / "ground.png"), np.clip(128 + 40 * texture, 0, 255).astype(np.uint8))
+    lake = [[-25.0, 10.0], [25.0, 10.0], [25.0, 90.0], [-25.0, 90.0]]  # north, east, m
+    (tmp_path / "w.yaml").write_text(yaml.safe_dump({
+        "origin": {"lat_deg": FRAME.lat_deg, "lon_deg": FRAME.lon_deg, "alt_amsl_m": FRAME.alt_amsl_m},
+        "ground": {"texture": "ground.png", "m_per_px": 0.05},
+        "patches": [{"name": "lake", "color": [70, 55, 45], "corners_m": lake}]}))
+    west, east = lat_lon(0.0, -40.0), lat_lon(0.0, 100.0)
+    mission = wpl(tmp_path, (0, 1, 0, 16, 0, 0, 0, 0, FRAME.lat_deg, FRAME.lon_deg, FRAME.alt_amsl_m, 1),
+                  (1, 0, 3, 22, 0, 0, 0, 0, 0, 0, 15, 1), (2, 0, 3, 16, 0, 0, 0, 0, *west, 15, 1),
+                  (3, 0, 3, 16, 0, 0, 0, 0, *east, 15, 1), (4, 0, 3, 16, 0, 0, 0, 0, *west, 15, 1),
+                  (5, 0, 3, 21, 0, 0, 0, 0, 0, 0, 0, 1))
+    out = tmp_path / "lake.json"
+    done = subprocess.run([sys.executable, "-m", "auxgps.cli", "eval", "--world", str(tmp_path / "w.yaml"), "--mission", str(mission),
+                           "--speed-m-s", "4", "--gps-lost-at-waypoint", "3", "--quiet", "--json", str(out)],
+                          cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    figures = json.loads(out.read_text())
+    f = figures["featureless"]
+    assert f is not None and f["crossings"] == 1 and f["seconds_over"] > 15.0
+    assert f["accepted_fix_max_m"] is None or f["accepted_fix_max_m"] <= 0.02 * 15.0
+    assert f["within_3_reported"] >= 0.97
+    assert f["said_no_fix"] == 1 and f["no_fix_after_s"] < f["seconds_over"]  # GPS_INPUT said "no fix" over it
+    assert f["fix_3d_again_s"] is not None and f["fix_3d_again_s"] < 5.0  # and a 3D fix came back with the texture
+    said = [line for _, line in figures["notes"]]
+    assert any(line.startswith("featureless ground: ") for line in said), said
+    assert any(line.startswith("featureless ground over") for line in said), said
+    assert figures["height_agl"]["max_m"] == pytest.approx(15.0, abs=0.5)
+    assert figures["scenario"]["altitude_m"] is None

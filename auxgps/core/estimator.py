@@ -228,6 +228,7 @@ class Estimator:
         self._attitude_lost = False
         self._pending_note: str | None = None  # said with the next finished frame
         self._frame_fault: str | None = None  # the camera fault in force (its kind), for the events log
+        self._featureless = False  # the last frame checked had too few features to locate from (water, a bare field)
         self._ambiguous: tuple[float, float] | None = None  # (when, how far apart) the last ambiguous frame's rivals
 
     # -- telemetry -----------------------------------------------------------------------------------------
@@ -437,6 +438,16 @@ class Estimator:
             self._frame_fault = kind
         return fault, note
 
+    def _featureless_note(self, n_features: int) -> str | None:
+        """A line for the events log when frames begin or stop having too few features to locate from."""
+        least = self.cfg.positioning.min_inliers
+        if (n_features < least) == self._featureless:
+            return None
+        self._featureless = not self._featureless
+        if self._featureless:
+            return f"featureless ground: {n_features} features, fewer than {least}; no fix from such frames"
+        return f"featureless ground over ({n_features} features)"
+
     def process_frame(self, job: FrameJob) -> FrameWork:
         """Check the frame, detect, then map (while GPS1 is trusted) and locate. Reads and changes only the map,
         the frame and the frame check's memory."""
@@ -462,6 +473,7 @@ class Estimator:
         scale = 1.0 if job.mapping else self.localiser.detection_scale(job.alt_above_origin_m, job.prior, cand if len(cand) else prior_cand)
         with sw("detection"):
             feats = self.detector.detect(grey, job.R_ned_body @ self.R_body_cam, scale)
+        note = _joined(note, self._featureless_note(len(feats)))
         mapped = None
         heading_sigma = None
         if job.heading is not None:

@@ -95,7 +95,7 @@ def _run_on_ray(jobs: list, address: str, desc: str, progress: bool) -> list[Run
 
 def evaluate(
     world_path: Path | str,
-    alt_m: float,
+    alt_m: float | None,
     *,
     fps: float,
     runs: int,
@@ -111,7 +111,8 @@ def evaluate(
     """Fly ``runs`` seeded runs (seeds ``seed`` .. ``seed + runs - 1``) and return the pooled summary.
 
     ``fps``: the positioning flight's frame rate; ``mapping_fps``: the survey's (default ``fps``); ``mission``: fly
-    it instead (one flight, mapping until GPS1 is lost, at ``fps`` throughout); ``ray``: a Ray cluster's address
+    it instead (one flight, mapping until GPS1 is lost, at ``fps`` throughout; ``alt_m`` None: at the mission's own
+    heights); ``ray``: a Ray cluster's address
     ("auto" for the one this machine belongs to, "local" to start one here) to run on instead of local processes."""
     world = load_world(world_path)  # fail early, in this process, on a bad world or mission file
     if mission is not None:
@@ -122,7 +123,7 @@ def evaluate(
     mapping_fps = mapping_fps or fps
     jobs = [(str(world_path), alt_m, fps, seed + k, pipeline, sim, mapping_fps, mission) for k in range(runs)]
     workers = max(1, min(workers or os.cpu_count() or 1, runs))
-    desc = f"{Path(world_path).stem} @ {alt_m:g} m"
+    desc = f"{Path(world_path).stem} @ {alt_m:g} m" if alt_m is not None else Path(world_path).stem
     if ray is not None:
         records = _run_on_ray(jobs, ray, desc, progress)
     elif workers == 1:

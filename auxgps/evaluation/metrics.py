@@ -124,6 +124,71 @@ def _blackout(records: list[RunRecord]) -> dict | None:
     return worst
 
 
+def _heights(records: list[RunRecord]) -> dict | None:
+    """The true height above ground while denied, m: the one the figures are a share of."""
+    h = np.concatenate([r.fused_height_agl_m for r in records])
+    if not len(h):
+        return None
+    return {"min_m": float(h.min()), "median_m": float(np.median(h)), "max_m": float(h.max())}
+
+
+def _gps_input(records: list[RunRecord]) -> dict:
+    """What GPS_INPUT said while denied: the share of outputs with a 3D fix, and of those, the share whose true
+    error is inside three times the horizontal accuracy they reported."""
+    e = np.concatenate([np.linalg.norm(r.fused_err_ne_m, axis=1) for r in records])
+    fix_3d = np.concatenate([r.gps_fix_type for r in records]) == 3
+    h_acc = np.concatenate([r.gps_h_acc_m for r in records])
+    if not len(e) or len(h_acc) != len(e):
+        return {"outputs": 0, "fix_3d_share": None, "within_3_reported": None}
+    return {"outputs": int(len(e)), "fix_3d_share": float(fix_3d.mean()),
+            "within_3_reported": float(np.mean(e[fix_3d] <= 3.0 * h_acc[fix_3d])) if fix_3d.any() else None}
+
+
+def _crossings(over: np.ndarray) -> list[tuple[int, int]]:
+    """(start, end) output indices, end exclusive, of each run of outputs over a featureless patch."""
+    edges = np.flatnonzero(np.diff(np.r_[0, over.astype(int), 0]))
+    return list(zip(edges[::2], edges[1::2]))
+
+
+def _featureless(records: list[RunRecord]) -> dict | None:
+    """Crossings of the world's featureless patches while denied (None: none). Pooled over crossings: the time
+    over them, the accepted fixes captured over them and their largest error, the share of outputs over them whose
+    true error is inside three times GPS_INPUT's reported accuracy; how many crossings made GPS_INPUT say "no
+    fix", the longest it took after entering, and the longest from leaving to a 3D fix again (negative: before the
+    vehicle left, the camera seeing the shore; None: not before the flight ended)."""
+    rows = []
+    for r in records:
+        if not len(r.fused_over_patch) or not r.fused_over_patch.any():
+            continue
+        t, e, fix_3d = r.fused_t_s, np.linalg.norm(r.fused_err_ne_m, axis=1), r.gps_fix_type == 3
+        for a, b in _crossings(r.fused_over_patch):
+            lost = a + np.flatnonzero(~fix_3d[a:b])
+            again = lost[0] + np.flatnonzero(fix_3d[lost[0]:]) if len(lost) else []
+            rows.append({
+                "s": float(t[b - 1] - t[a]),
+                "honest": e[a:b] <= 3.0 * r.gps_h_acc_m[a:b],
+                "no_fix_after_s": float(t[lost[0]] - t[a]) if len(lost) else None,
+                "fix_3d_again_s": float(t[again[0]] - t[b - 1]) if len(again) else None,
+            })
+    if not rows:
+        return None
+    scored = [r for r in records if len(r.fix_over_patch) == len(r.fix_err_ne_m)]
+    over_fix = np.concatenate([np.zeros(0, bool)] + [r.fix_over_patch & r.fix_accepted for r in scored])
+    fix_e = np.concatenate([np.zeros(0)] + [np.linalg.norm(r.fix_err_ne_m, axis=1) for r in scored])
+    said = [row for row in rows if row["no_fix_after_s"] is not None]
+    again = [row["fix_3d_again_s"] for row in said]
+    return {
+        "crossings": len(rows),
+        "seconds_over": float(sum(row["s"] for row in rows)),
+        "accepted_fixes": int(over_fix.sum()),
+        "accepted_fix_max_m": float(fix_e[over_fix].max()) if over_fix.any() else None,
+        "within_3_reported": float(np.mean(np.concatenate([row["honest"] for row in rows]))),
+        "said_no_fix": len(said),
+        "no_fix_after_s": max((row["no_fix_after_s"] for row in said), default=None),
+        "fix_3d_again_s": None if None in again or not again else max(again),
+    }
+
+
 def summarize(records: list[RunRecord]) -> dict:
     """Pooled figures over ``records``, with each run's own under ``runs``."""
     pooled = _summarize_pooled(records)
@@ -169,9 +234,13 @@ def _summarize_pooled(records: list[RunRecord]) -> dict:
         "gate": {
             "rejected": int(gated.sum()),
             "accepted_over_0_5m": int(np.sum(accepted & (np.linalg.norm(fix_ne, axis=1) > 0.5))),
+            "accepted_max_m": float(np.linalg.norm(fix_ne[accepted], axis=1).max()) if accepted.any() else None,
             "reinitialisations": int(sum(r.n_reinit for r in records)),
         },
         "denied_s": float(np.mean([r.denied_s for r in records])),
+        "height_agl": _heights(records),
+        "gps_input": _gps_input(records),
+        "featureless": _featureless(records),
         "blackout": _blackout(records),
         "per_frame_ms": {
             "median": float(np.median(all_ms)) if len(all_ms) else None,

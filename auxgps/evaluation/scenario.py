@@ -45,6 +45,11 @@ class RunRecord:
     fused_cov_ne_m2: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     fused_vel_err_ne_m_s: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (O, 2) velocity - truth
     fix_applied_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (F,) when the filter got each fix (NaN: never)
+    fix_over_patch: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (F,) captured over a featureless patch
+    fused_height_agl_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (O,) the true height above ground
+    fused_over_patch: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (O,) over a featureless patch
+    gps_fix_type: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # (O,) GPS_INPUT's fix_type (0: none sent)
+    gps_h_acc_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (O,) GPS_INPUT's horiz_accuracy (NaN: none sent)
     denied_from_s: float = 0.0  # when GPS was lost
     denied_s: float = 0.0
     blackout_s: tuple[float, float] | None = None  # (start, end) of a camera blackout, s
@@ -233,7 +238,9 @@ class _Scored:
         self.su, self.traj, self.denied_from = su, traj, float(denied_from_s)
         self.dt = traj.t_s[1] - traj.t_s[0]
         self.fix_applied, self.fix_err, self.fix_sigma, self.fix_gated, self.pos_ms, self.n_feat = [], [], [], [], [], []
+        self.fix_over_patch = []
         self.fused_t, self.fused_err, self.fused_cov, self.fused_vel_err = [], [], [], []
+        self.height_agl, self.over_patch, self.fix_type, self.h_acc = [], [], [], []
         self.reasons: dict[str, int] = {}
         self.counts = {"eligible": 0, "eligible_fixed": 0, "frames": 0}
 
@@ -253,6 +260,7 @@ class _Scored:
             self.fix_sigma.append(res.located.sigma_h_rms_m)
             self.fix_gated.append(not res.decision.accepted)
             self.fix_applied.append(t_capture + latency_s)
+            self.fix_over_patch.append(self._over_patch(seen.i))
         else:
             key = _reason_key(res.reason)
             self.reasons[key] = self.reasons.get(key, 0) + 1
@@ -266,6 +274,14 @@ class _Scored:
         self.fused_err.append(out.estimate.p_ned_m[:2] - traj.p_ned_m[k, :2])
         self.fused_cov.append(out.estimate.cov_p_m2[:2, :2])
         self.fused_vel_err.append(out.estimate.v_ned_m_s[:2] - traj.v_ned_m_s[k, :2])
+        self.height_agl.append(float(self.su.world.ground_down_m(traj.p_ned_m[k, :2])) - traj.p_ned_m[k, 2])
+        self.over_patch.append(self._over_patch(k))
+        self.fix_type.append(out.gps.fix_type if out.gps is not None else 0)
+        self.h_acc.append(out.gps.horiz_accuracy_m if out.gps is not None else np.nan)
+
+    def _over_patch(self, i: int) -> bool:
+        """Whether the vehicle is over one of the world's featureless patches at step ``i``."""
+        return bool(self.su.world.patches) and bool(self.su.world.patch_at(self.traj.p_ned_m[i : i + 1, :2])[0] >= 0)
 
     def record(self, seed: int, est: Estimator, landmark_errors: tuple[np.ndarray, np.ndarray], mapping_ms: list, blackout,
                notes) -> RunRecord:
@@ -289,6 +305,11 @@ class _Scored:
             fused_cov_ne_m2=np.array(self.fused_cov).reshape(-1, 2, 2),
             fused_vel_err_ne_m_s=np.array(self.fused_vel_err).reshape(-1, 2),
             fix_applied_t_s=np.array(fix_applied, float),
+            fix_over_patch=np.array(self.fix_over_patch, bool),
+            fused_height_agl_m=np.array(self.height_agl),
+            fused_over_patch=np.array(self.over_patch, bool),
+            gps_fix_type=np.array(self.fix_type, int),
+            gps_h_acc_m=np.array(self.h_acc, float),
             denied_from_s=self.denied_from,
             denied_s=float(self.traj.duration_s - self.denied_from),
             blackout_s=blackout,
@@ -336,15 +357,15 @@ def run_once(
 
 
 def run_mission(
-    world: World, mission: Mission, alt_m: float, speed_m_s: float, gps_lost_at_seq: int, fps: float, seed: int,
+    world: World, mission: Mission, alt_m: float | None, speed_m_s: float, gps_lost_at_seq: int, fps: float, seed: int,
     pipeline: PipelineConfig, sim: SimConfig, progress=None, maps: tuple[str, ...] = (),
 ) -> RunRecord:
-    """Fly ``mission`` once over ``world`` from home at its origin, every height at ``alt_m`` and at ``speed_m_s``:
-    mapping while GPS1 is good, GPS1 lost (no fix) on reaching mission item ``gps_lost_at_seq`` (its number in the
-    file), the rest flown and scored as :func:`run_once` scores its positioning flight. One estimator, as in a real
-    flight: the map it positions on is the one it made on the way out. Faults apply at ``at_s`` after take-off; the
-    camera's effects of the way back from the moment GPS1 is lost. ``maps``: map files the estimator starts from
-    (prior maps), moved into the world's frame."""
+    """Fly ``mission`` once over ``world`` from home at its origin, every height at ``alt_m`` (None: the mission's own
+    heights) and at ``speed_m_s``: mapping while GPS1 is good, GPS1 lost (no fix) on reaching mission item
+    ``gps_lost_at_seq`` (its number in the file), the rest flown and scored as :func:`run_once` scores its
+    positioning flight. One estimator, as in a real flight: the map it positions on is the one it made on the way
+    out. Faults apply at ``at_s`` after take-off; the camera's effects of the way back from the moment GPS1 is lost.
+    ``maps``: map files the estimator starts from (prior maps), moved into the world's frame."""
     path_ned, owner = mission_waypoints_ned(mission, world.frame, alt_m)
     k = gps_lost_waypoint(mission, owner, gps_lost_at_seq)
     su = _Setup(world, pipeline, sim, seed)

@@ -1,9 +1,10 @@
 """A simulated camera: renders a :class:`~auxgps.sim.world.World` exactly as a :class:`PinholeCamera` sees it.
 
 The ground is a flat colour, a texture warped by the ground-plane homography, or a georeferenced orthophoto
-reprojected into the view (:class:`~auxgps.sim.geoground.GeoGround`), flat or over a height model; cube faces are filled as
-anti-aliased polygons with per-face Lambertian shading, resolved per pixel with a depth buffer. Lens
-distortion, when the camera has any, is applied last by remapping the ideal image. The renderer also gives,
+reprojected into the view (:class:`~auxgps.sim.geoground.GeoGround`), flat or over a height model; featureless
+patches are painted over the flat ground in their own colours, unshaded; cube faces are filled as anti-aliased
+polygons with per-face Lambertian shading, resolved per pixel with a depth buffer. Lens distortion, when the
+camera has any, is applied last by remapping the ideal image. The renderer also gives,
 for evaluation only, the true 3D point behind any pixel.
 """
 
@@ -21,6 +22,18 @@ from auxgps.sim.world import World
 #: Unit vectors from a surface towards the two lights (NED): a sun high in the south-east, a dim sky fill.
 _SUN_NED = np.array([-0.35, 0.45, -0.82]) / np.linalg.norm([-0.35, 0.45, -0.82])
 _FILL_NED = np.array([0.6, -0.2, -0.77]) / np.linalg.norm([0.6, -0.2, -0.77])
+
+
+def clip_polygon(p: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray:
+    """The part of the polygon ``p`` (K, 3), corners in order, where ``normal @ p >= offset``: (K', 3), K' 0 when
+    none of it is (Sutherland-Hodgman against one plane)."""
+    s = p @ normal - offset
+    s_next, p_next = np.roll(s, -1), np.roll(p, -1, axis=0)
+    inside = s >= 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        crossing = p + (p_next - p) * (s / (s - s_next))[:, None]
+    # Each edge gives its start when that is inside, then the point where it crosses the plane, if it does.
+    return np.stack([p, crossing], axis=1)[np.stack([inside, inside != (s_next >= 0)], axis=1)]
 
 
 def face_shade(normal_ned: np.ndarray) -> float:
@@ -157,6 +170,16 @@ class Renderer:
             for cube in world.cubes
         ]
         self._vertices = world.all_vertices_ned()
+        self._patches = [(np.column_stack([p.corners_ne_m, np.zeros(len(p.corners_ne_m))]), p.color_bgr)
+                         for p in world.patches]  # (corners (K, 3) NED, colour)
+        # A patch is clipped in the camera frame before it is projected: in front of the lens (corners behind it would
+        # fold over), and within a guard band of one image size around the image (fillPoly's fixed point can overflow).
+        # Planes as (normal, offset), keeping normal @ p_cam >= offset.
+        x_lo, x_hi = (-W - camera.K[0, 2]) / camera.K[0, 0], (2 * W - camera.K[0, 2]) / camera.K[0, 0]
+        y_lo, y_hi = (-H - camera.K[1, 2]) / camera.K[1, 1], (2 * H - camera.K[1, 2]) / camera.K[1, 1]
+        self._patch_clip_planes_cam = [(np.array([0.0, 0.0, 1.0]), self._NEAR_M)] + [
+            (np.array(n), 0.0) for n in ([1.0, 0.0, -x_lo], [-1.0, 0.0, x_hi], [0.0, 1.0, -y_lo], [0.0, -1.0, y_hi])
+        ]
         # A plain ground is the same image in every frame: made once, copied per frame.
         self._plain_ground = None if world.ground_color_bgr is None else np.full((H, W, 3), world.ground_color_bgr, np.uint8)
         self._geo = GeoGround(world, camera, self._xn, self._yn) if world.ground_orthophoto is not None else None
@@ -215,6 +238,8 @@ class Renderer:
         else:
             image, ground_depth = self._ground(pose), None
             zbuf = np.full(image.shape[:2], np.inf, np.float32)
+        for corners_ned, color_bgr in self._patches:  # on the ground, under the cubes
+            self._draw_patch(image, pose, corners_ned, color_bgr)
         c = pose.p_cam_in_ned_m
         for cube, faces in sorted(self._cubes, key=lambda cf: -np.linalg.norm(cf[0].vertices_ned().mean(0) - c)):
             front = [f for f in faces if f[1] @ (f[0].mean(axis=0) - c) < 0]  # faces turned towards the camera
@@ -238,6 +263,22 @@ class Renderer:
     _SS = 4
     #: Below this height above the ground the lens sees nothing (the ground-plane homography degenerates there).
     MIN_LENS_HEIGHT_M = 0.05
+    #: A patch is clipped to this z-depth in front of the lens, m.
+    _NEAR_M = 1e-3
+
+    def _draw_patch(self, image, pose, corners_ned, color_bgr) -> None:
+        """Fill one patch, corners (K, 3) NED on the ground plane, in its flat colour with an anti-aliased edge.
+
+        OpenCV's anti-aliased fill strokes the outline over the filled polygon, so the patch comes out about 2/3 px
+        wider on every side than its true outline (exact area coverage, as the cubes have, costs about 12 ms for a
+        patch filling a 1280 x 720 frame, against 0.4 ms)."""
+        p_cam = pose.ned_to_cam(corners_ned)
+        for normal, offset in self._patch_clip_planes_cam:
+            p_cam = clip_polygon(p_cam, normal, offset)
+        if len(p_cam) < 3:
+            return
+        uv = p_cam[:, :2] / p_cam[:, 2:3] * [self._K[0, 0], self._K[1, 1]] + self._K[:2, 2]
+        cv2.fillPoly(image, [np.rint(uv * 16).astype(np.int32)], color_bgr, lineType=cv2.LINE_AA, shift=4)
 
     def _draw_cube(self, image, zbuf, pose, faces) -> None:
         """Composite one convex cube: supersampled coverage and colour, per-pixel depth test against ``zbuf``."""

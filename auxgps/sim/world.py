@@ -1,5 +1,5 @@
 """Simulated worlds: a ground (flat colour, texture, or a georeferenced orthophoto with an optional height
-model) and cubes standing on it, read from YAML.
+model), featureless patches lying on it and cubes standing on it, read from YAML.
 
 World file keys (all lengths in metres, angles in degrees, colours BGR 0-255 or a name)::
 
@@ -8,6 +8,8 @@ World file keys (all lengths in metres, angles in degrees, colours BGR 0-255 or 
                                               # or {orthophoto: PATH.tif} and optionally dsm: PATH.tif
     cubes:
       - {east_m: 1.0, north_m: 2.0, size_m: 0.5, color: red, yaw_deg: 0}
+    patches:                                  # optional: flat polygons of one colour on the ground (down = 0)
+      - {name: lake, color: [90, 60, 30], corners_m: [[4, -3], [9, -1], [7, 4], [3, 2]]}   # [north_m, east_m] each
     description: free text (optional)
 
 An ``orthophoto`` is a georeferenced GeoTIFF in any CRS (1, 3 or 4 bands of uint8), placed in the local NED
@@ -21,6 +23,10 @@ height; in NED, the ground under (north, east) is at ``down = h0 - h_dsm``, wher
 of the tangent-plane point (north, east, 0) (so a DSM equal to the origin's altitude everywhere follows the
 ellipsoid, 8 cm below the tangent plane 1 km out). Off the DSM and at its no-data the height is the origin's
 altitude. Cubes stand on the DSM's height at their centre.
+
+A ``patch`` is a simple polygon (at least 3 corners, in order) of one flat colour, unshaded: water, a bare field, a
+uniform roof, the ground a camera finds no features on. It lies on the plane ``down = 0``, over the ground and under
+the cubes; where patches overlap, the later one is on top. Patches go with flat ground only, not with a ``dsm``.
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ from typing import Annotated, Union
 
 import cv2
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, FiniteFloat, field_validator, model_validator
 from pydantic.dataclasses import dataclass
 
 from auxgps.config import _STRICT, parse_as, read_yaml
@@ -115,11 +121,31 @@ class CubeSpec:
 
 
 @dataclass(config=_STRICT, frozen=True)
+class PatchSpec:
+    corners_m: Annotated[list[Annotated[list[FiniteFloat], Field(min_length=2, max_length=2)]], Field(min_length=3)]
+    color: ColorValue
+    name: str = ""
+
+    @field_validator("color")
+    @classmethod
+    def _check_color(cls, v):
+        _color_to_bgr(v)
+        return v
+
+
+@dataclass(config=_STRICT, frozen=True)
 class WorldSpec:
     origin: OriginSpec
     ground: GroundSpec = Field(default_factory=lambda: GroundSpec(color=[128, 128, 128]))
     cubes: list[CubeSpec] = Field(default_factory=list)
+    patches: list[PatchSpec] = Field(default_factory=list)
     description: str = ""
+
+    @model_validator(mode="after")
+    def _patches_on_flat_ground(self) -> "WorldSpec":
+        if self.patches and self.ground.dsm is not None:
+            raise ValueError("patches lie on flat ground (down = 0), not with ground.dsm: its relief would hide them wrongly")
+        return self
 
 
 @std_dataclass(frozen=True)
@@ -158,8 +184,18 @@ class Cube:
 
 
 @std_dataclass(frozen=True)
+class Patch:
+    """A featureless polygon of one flat colour lying on the ground (down = 0). ``corners_ne_m`` (K, 2) float64,
+    north, east, m, in order; ``color_bgr``; ``name`` free text ("lake"), possibly empty."""
+
+    name: str
+    corners_ne_m: np.ndarray
+    color_bgr: tuple[int, int, int]
+
+
+@std_dataclass(frozen=True)
 class World:
-    """A loaded world: its local frame, ground and cubes."""
+    """A loaded world: its local frame, ground, patches and cubes."""
 
     frame: LocalFrame
     cubes: tuple[Cube, ...]
@@ -170,6 +206,18 @@ class World:
     description: str = ""
     ground_orthophoto: GeoRaster | None = None
     ground_dsm: GeoRaster | None = None
+    patches: tuple[Patch, ...] = ()
+
+    def patch_at(self, p_ne_m: np.ndarray) -> np.ndarray:
+        """(N, 2) north, east, m -> (N,) int: the index in :attr:`patches` of the patch on top at each point (the
+        last one that contains it), -1 for none. A point on a patch's edge may fall either way."""
+        from matplotlib.path import Path as PolygonPath  # matplotlib only where patches are asked about
+
+        p = np.asarray(p_ne_m, float).reshape(-1, 2)
+        index = np.full(len(p), -1, int)
+        for i, patch in enumerate(self.patches):
+            index[PolygonPath(patch.corners_ne_m).contains_points(p)] = i
+        return index
 
     def ground_down_m(self, p_ne_m: np.ndarray) -> np.ndarray:
         """(..., 2) north, east, m -> (...) the down of the ground there, m: 0 without a DSM, else from the DSM
@@ -232,6 +280,7 @@ def world_from_spec(spec: WorldSpec, source: str = "", base_dir: Path | None = N
         description=spec.description,
         ground_orthophoto=ortho,
         ground_dsm=dsm,
+        patches=tuple(Patch(p.name, np.array(p.corners_m, float), _color_to_bgr(p.color)) for p in spec.patches),
     )
     centers_ne_m = np.array([[c.north_m, c.east_m] for c in spec.cubes], float).reshape(-1, 2)
     base_down_m = world.ground_down_m(centers_ne_m)
