@@ -135,9 +135,17 @@ def _write_json(path: str | None, figures: dict) -> None:
 def _demo(args) -> int:
     from auxgps.demo import run_demo
 
-    print("auxgps demo: the vehicle emulator flies a survey over a 4-cube world; GPS1 fails after 60 s; auxgps, a")
-    print("separate process on loopback, keeps the autopilot flying on GPS2. A control run flies without auxgps.")
-    figures = run_demo(str(DEMO_WORLD), out_dir=args.out_dir)
+    if bool(args.mission) != (args.gps_lost_at_waypoint is not None):
+        raise ConfigError("--mission and --gps-lost-at-waypoint go together: the mission, and the item GPS1 is lost at")
+    mission = ("--mission", args.mission, "--speed-m-s", str(args.speed_m_s), "--gps-lost-at-waypoint",
+               str(args.gps_lost_at_waypoint)) if args.mission else ()
+    if mission:
+        print(f"auxgps demo: the vehicle emulator flies {args.mission} over {args.world}; GPS1 fails on reaching item "
+              f"{args.gps_lost_at_waypoint};")
+    else:
+        print(f"auxgps demo: the vehicle emulator flies a survey over {args.world}; GPS1 fails after 60 s;")
+    print("auxgps, a separate process on loopback, keeps the autopilot flying on GPS2. A control run flies without auxgps.")
+    figures = run_demo(args.world, out_dir=args.out_dir, mission=mission)
     print(json.dumps(figures, indent=2))
     print(f"report: {args.out_dir}/report.png, {args.out_dir}/report.json")
     _write_json(args.json, figures)
@@ -730,6 +738,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="closed loop: the vehicle emulator and auxgps run, GPS1 failing mid-survey")
     p.add_argument("--out-dir", default="out/demo", help="logs, report.png and report.json go here")
+    p.add_argument("--world", default=DEMO_WORLD, help=f"a world by name or a world YAML file (default {DEMO_WORLD})")
+    p.add_argument("--mission", help="fly this mission instead of the survey (.waypoints or .plan), at its own heights")
+    p.add_argument("--speed-m-s", type=_positive(float), default=5.0, help="with --mission: its speed, m/s (default 5)")
+    p.add_argument("--gps-lost-at-waypoint", type=_positive(int), help="with --mission: the item on reaching which GPS1 fails")
     p.add_argument("--json", help="also write the figures here")
     p.set_defaults(func=_demo)
     return parser

@@ -21,27 +21,29 @@ import numpy as np
 from tqdm import tqdm
 
 
-
-
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
 
 
-def _emulator(world: str, port: int, log: Path, fail_at_s: float, gps2_type: int, max_s: float) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "auxgps.sim.emulator", "--world", world, "--port", str(port), "--fail-gps1-at", str(fail_at_s),
+def _emulator(world: str, port: int, log: Path, flight: list[str], gps2_type: int, max_s: float) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "auxgps.sim.emulator", "--world", world, "--port", str(port), *flight,
            "--gps2-type", str(gps2_type), "--log", str(log), "--max-seconds", str(max_s)]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
-def run_demo(world: str, out_dir: str = "out/demo", fail_at_s: float = 60.0, max_s: float = 480.0) -> dict:
-    """Fly the closed loop and the control run at once; return the figures (also written as JSON and PNG)."""
+def run_demo(world: str, out_dir: str = "out/demo", fail_at_s: float = 60.0, max_s: float = 480.0,
+             mission: tuple[str, ...] = ()) -> dict:
+    """Fly the closed loop and the control run at once; return the figures (also written as JSON and PNG).
+    ``mission``: the emulator's options that fly a mission instead of the survey (``--mission``, ``--speed-m-s``,
+    ``--gps-lost-at-waypoint``); GPS1 then fails where they say instead of ``fail_at_s`` after take-off."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     port, port_ctl = _free_port(), _free_port()
-    emu = _emulator(world, port, out / "emulator.json", fail_at_s, 14, max_s)
-    ctl = _emulator(world, port_ctl, out / "control.json", fail_at_s, 0, max_s)
+    flight = list(mission) if mission else ["--fail-gps1-at", str(fail_at_s)]
+    emu = _emulator(world, port, out / "emulator.json", flight, 14, max_s)
+    ctl = _emulator(world, port_ctl, out / "control.json", flight, 0, max_s)
     time.sleep(1.0)
     run = subprocess.Popen(
         [sys.executable, "-m", "auxgps.cli", "run", "--connect", f"tcp:127.0.0.1:{port}", "--camera", f"sim:{world}",
@@ -91,6 +93,10 @@ def report(out: Path) -> dict:
     err = np.linalg.norm(truth[:, :2] - est[:, :2], axis=1)
     denied = t >= fail if fail is not None else np.zeros(len(t), bool)
     arrivals = np.array(log.get("gps_input_arrivals_t_s", []))
+    # The descent to the landing: how far GPS2 (what auxgps last said) was from the truth, against its accuracy
+    down = [x for x in s if x.get("phase") == "descend" and x.get("gps2_ned_m") is not None and x.get("gps2_fix") == 3]
+    gps2_err = np.array([np.hypot(*np.subtract(x["gps2_ned_m"][:2], x["truth_ned_m"][:2])) for x in down])
+    gps2_acc = np.array([x["gps2_h_acc_m"] for x in down])
     figures = {
         "landing_error_m": log.get("landing_error_m"),
         "gps2_switch_s": (log["switch_to_gps2_t_s"] - fail) if fail is not None and log.get("switch_to_gps2_t_s") else None,
@@ -98,6 +104,9 @@ def report(out: Path) -> dict:
         "denied_s": float(t[denied][-1] - fail) if denied.any() else 0.0,
         "horizontal_error_m": {"rms": float(np.sqrt(np.mean(err[denied] ** 2))) if denied.any() else None,
                                "max": float(err[denied].max()) if denied.any() else None},
+        "descent": {"gps2_3d_samples": len(down),
+                    "gps2_error_max_m": float(gps2_err.max()) if len(down) else None,
+                    "gps2_within_3_reported": float(np.mean(gps2_err <= 3.0 * gps2_acc)) if len(down) else None},
         "exit": log.get("exit_reason"),
         "control": {"landing_error_m": ctl.get("landing_error_m"), "exit": ctl.get("exit_reason"),
                     "failsafe": any(e.get("event") == "failsafe" for e in ctl.get("events", []))},

@@ -197,6 +197,25 @@ def test_a_frozen_camera_gives_no_fix_and_is_said_once(flight):
     assert sigma[20.9] > 2 * sigma[18.0]
 
 
+@pytest.mark.slow
+def test_a_strap_sliding_over_the_lens_is_one_fault_in_the_events_log(flight):
+    """From 18 to 21 s the bottom 45 % to 75 % of the image goes black, more every frame: no fix from those frames,
+    one events line as the fault starts and one as it ends, whatever share each frame has."""
+    world, events, _ = flight
+    covered = []
+    for kind, e in events:
+        if kind == "frame" and 18.0 <= e.t_s < 21.0:
+            image = e.image_bgr.copy()
+            image[int(image.shape[0] * (0.55 - 0.1 * (e.t_s - 18.0))):] = 0
+            e = Frame(e.t_s, image)
+        covered.append((kind, e))
+    _, said = run(world, covered)
+    results = [(e.t_s, r) for (kind, e), r in zip(covered, said) if kind == "frame"]
+    assert all(r.kind == "none" and "black" in r.reason for t, r in results if 18.0 <= t < 21.0)
+    notes = [r.note for _, r in results if r.note]
+    assert len(notes) == 2 and notes[0].startswith("camera fault: image") and notes[1] == "camera fault over (image black)", notes
+
+
 def test_an_ambiguous_frame_widens_the_fixes_of_the_frames_after_it():
     """A frame whose two readings lay 0.6 m apart casts doubt on the next fixes of the same ground: a fix 0.3 m off
     moves the filter less right after it than it does without one, and the doubt lapses after

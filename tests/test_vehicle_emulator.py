@@ -542,3 +542,26 @@ def test_injected_gps1_faults_count_from_take_off():
     assert not [t for t in arrivals if 6.0 <= t < 7.0 or 8.0 <= t < 9.0]  # silent
     assert [t for t in arrivals if 7.0 <= t < 8.0]  # and back between
     assert all(h_acc[t] == 4.0 for t in h_acc if 11.0 <= t < 13.0) and all(h_acc[t] < 1.0 for t in h_acc if t < 11.0)
+
+
+def test_a_mission_is_flown_at_its_own_heights_and_lands_where_it_ends():
+    path = ((0.0, 0.0, 0.0), (0.0, 0.0, -3.0), (6.0, 0.0, -3.0), (6.0, 6.0, -5.0), (0.0, 0.0, -5.0), (0.0, 0.0, 0.0))
+    sim = emu.VehicleSim(FRAME, emu.EmulatorOptions(mission_path_ned_m=path, mission_speed_m_s=3.0, gps2_type=0).validate())
+    closest_m = np.full(len(path), np.inf)
+    while sim.landed_t_s is None and sim.t_s < 120:
+        sim.step()
+        closest_m = np.minimum(closest_m, np.linalg.norm(np.array(path) - sim.craft.p_ned_m, axis=1))
+    assert sim.landed_t_s is not None and sim.landing_error_m < 0.5 and sim.mode is emu.CopterMode.RTL
+    assert np.all(closest_m[1:5] < 2 * emu.VehicleConfig().waypoint_radius_m)  # every place, at its height
+
+
+def test_a_mission_loses_gps1_on_reaching_the_waypoint_asked():
+    path = ((0.0, 0.0, 0.0), (0.0, 0.0, -3.0), (6.0, 0.0, -3.0), (6.0, 6.0, -3.0), (0.0, 0.0, -3.0), (0.0, 0.0, 0.0))
+    sim = emu.VehicleSim(FRAME, emu.EmulatorOptions(mission_path_ned_m=path, mission_speed_m_s=3.0, fail_gps1_at_index=3,
+                                                    gps2_type=0).validate())
+    while sim.failure_t_s is None and sim.t_s < 60:
+        sim.step()
+    assert sim.failure_t_s is not None
+    assert np.linalg.norm(sim.craft.p_ned_m - path[3]) < 2 * emu.VehicleConfig().waypoint_radius_m
+    with pytest.raises(emu.EmulatorError, match="give one"):
+        emu.EmulatorOptions(mission_path_ned_m=path, fail_gps1_at_index=3, fail_gps1_at_s=5.0).validate()

@@ -431,7 +431,8 @@ class Estimator:
         gsd_m = max(job.alt_above_origin_m, 1.0) / self.camera.focal_px
         px_per_s = job.speed_h_m_s / gsd_m if job.speed_h_m_s is not None else None
         fault = self.frame_check.check(t, grey, px_per_s)
-        kind = fault.split(":")[0].split(" (")[0] if fault else None
+        # The fault's kind, without its figures: a strap sliding over the lens is one fault, not one a frame
+        kind = " ".join(w for w in fault.split(":")[0].split(" (")[0].split() if not any(c.isdigit() for c in w)) if fault else None
         note = None
         if kind != self._frame_fault:
             note = f"camera fault: {fault}; no fix from such frames" if fault else f"camera fault over ({self._frame_fault})"

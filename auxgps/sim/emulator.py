@@ -2,16 +2,18 @@
 
     python -m auxgps.sim.emulator --world one_cube_1m --port 5760 \\
         [--altitude 15] [--speedup 1] [--fail-gps1-at 60] [--gps2-type 14] [--auto-switch 1] [--log out/emu.json]
-        [--faults config/faults/FILE.yaml]
+        [--faults config/faults/FILE.yaml] [--mission M.waypoints --speed-m-s 8 --gps-lost-at-waypoint 3]
 
 It serves MAVLink 2 on TCP 127.0.0.1:PORT (one client at a time; it keeps flying when the client leaves and
 accepts the next one), flies the mapping survey of ``SimConfig().mapping`` with ``auxgps.sim.flight``'s
-multirotor, takes GPS_INPUT as GPS2 under ArduPilot's rules (/work/shared/ARDUPILOT.md) and navigates on its
-own estimate, never on the truth. ``--faults`` takes the fault file of ``auxgps eval --faults``
-(:mod:`auxgps.sim.faults`): its GPS1 faults (drag, inflated accuracy, dropouts) and telemetry faults (attitude
-stopping, height stuck, every message twice) begin ``at_s`` after take-off; camera faults and reordering are not
-emulated here (they are the camera's and the link's, not the autopilot's). Exit code 0 after landing, 3 after ``--max-seconds``, 130 when interrupted,
-1 for a bad argument; the JSON log is written in every case.
+multirotor (or, with ``--mission``, the mission's places at their own heights, GPS1 disabled on reaching item
+``--gps-lost-at-waypoint``, and the landing where it ends), takes GPS_INPUT as GPS2 under ArduPilot's rules
+(/work/shared/ARDUPILOT.md) and navigates on its own estimate, never on the truth. ``--faults`` takes the fault
+file of ``auxgps eval --faults`` (:mod:`auxgps.sim.faults`): its GPS1 faults (drag, inflated accuracy, dropouts)
+and telemetry faults (attitude stopping, height stuck, every message twice) begin ``at_s`` after take-off; camera
+faults and reordering are not emulated here (they are the camera's and the link's, not the autopilot's). Exit
+code 0 after landing, 3 after ``--max-seconds``, 130 when interrupted, 1 for a bad argument; the JSON log is
+written in every case.
 
 Layout
 ------
@@ -44,7 +46,7 @@ import sys
 import tempfile
 import time
 from collections import deque
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -56,6 +58,7 @@ from pymavlink.quaternion import QuaternionBase  # noqa: E402
 
 from auxgps.core.geometry import LocalFrame, R_ned_body_from_euler  # noqa: E402
 from auxgps.errors import AuxGpsError  # noqa: E402
+from auxgps.io.mission import load_mission  # noqa: E402
 from auxgps.sim.flight import (  # noqa: E402
     GRAVITY_M_S2,
     Multirotor,
@@ -64,8 +67,10 @@ from auxgps.sim.flight import (  # noqa: E402
     TelemetryNoiseConfig,
     VehicleConfig,
     WaypointGuidance,
+    gps_lost_waypoint,
     imu_bias,
     lawnmower_waypoints,
+    mission_waypoints_ned,
 )
 from auxgps.sim.faults import Fault, load_fault_plan  # noqa: E402
 from auxgps.sim.world import load_world  # noqa: E402
@@ -491,12 +496,24 @@ class EmulatorOptions:
     seed: int = 1
     max_seconds: float = 1800.0
     faults: tuple[Fault, ...] = ()  # GPS1 and telemetry faults, at_s after take-off (see the module's docstring)
+    # A mission flown instead of the survey (--mission): its path from home, (K, 3) NED m as
+    # auxgps.sim.flight.mission_waypoints_ned makes it (home, the take-off's top, ..., the landing on the ground),
+    # its speed, and the index in it of the waypoint on reaching which GPS1 is disabled (None: --fail-gps1-at).
+    mission_path_ned_m: tuple[tuple[float, float, float], ...] | None = None
+    mission_speed_m_s: float = 5.0
+    fail_gps1_at_index: int | None = None
 
     def validate(self) -> "EmulatorOptions":
         if not 0.5 <= self.altitude_m <= 120.0:
             raise EmulatorError(f"--altitude {self.altitude_m}: give 0.5 to 120 m")
         if self.fail_gps1_at_s is not None and self.fail_gps1_at_s < 0:
             raise EmulatorError(f"--fail-gps1-at {self.fail_gps1_at_s}: must not be negative")
+        if self.mission_path_ned_m is not None and (len(self.mission_path_ned_m) < 4 or self.mission_path_ned_m[1][2] >= 0.0):
+            raise EmulatorError("--mission: give a mission that takes off and goes somewhere")
+        if self.fail_gps1_at_index is not None and self.fail_gps1_at_s is not None:
+            raise EmulatorError("--fail-gps1-at and --gps-lost-at-waypoint: give one")
+        if not 0.5 <= self.mission_speed_m_s <= 20.0:
+            raise EmulatorError(f"--speed-m-s {self.mission_speed_m_s}: give 0.5 to 20 m/s")
         if self.survey_size_m is not None and not 0.5 <= self.survey_size_m <= 1000.0:
             raise EmulatorError(f"--survey-size {self.survey_size_m}: give 0.5 to 1000 m")
         if self.gps2_type not in (GPS_TYPE_NONE, GPS_TYPE_MAV):
@@ -731,11 +748,19 @@ class VehicleSim:
         self.step_index += 1
 
     def _inject_scheduled_failure(self, t_s: float) -> None:
-        at_s = self.options.fail_gps1_at_s
-        if at_s is None or self.takeoff_t_s is None or self.failure_t_s is not None:
+        at_s, at_index = self.options.fail_gps1_at_s, self.options.fail_gps1_at_index
+        if self.takeoff_t_s is None or self.failure_t_s is not None:
             return
-        if t_s >= self.takeoff_t_s + at_s - 1e-9:
+        if (at_s is not None and t_s >= self.takeoff_t_s + at_s - 1e-9) or (at_index is not None and self._reached_index() >= at_index):
             self.set_param("SIM_GPS1_ENABLE", 0)
+
+    def _reached_index(self) -> int:
+        """With a mission: the index in its path of the last waypoint reached (0, home, until the take-off's top)."""
+        if self.phase is Phase.TAKEOFF:
+            return 1 if self._guide is not None and self._guide.done else 0
+        if self.phase is Phase.SURVEY:
+            return self._guide.target  # the survey's waypoint j is the path's j + 1; target j + 1 once it is reached
+        return len(self.options.mission_path_ned_m or ()) - 2 if self.phase is not Phase.WAIT_ARM else 0
 
     def _wait_for_arming(self, t_s: float) -> None:
         if t_s < BOOT_S:
@@ -754,11 +779,13 @@ class VehicleSim:
         self.armed = True
         self.takeoff_t_s = t_s
         p_est, _ = self.estimate_ned(t_s)
-        top = np.array([p_est[0], p_est[1], -self.options.altitude_m])
+        path = self.options.mission_path_ned_m
+        height_m = -path[1][2] if path is not None else self.options.altitude_m
+        top = np.array([p_est[0], p_est[1], -height_m])
         self._guide = WaypointGuidance(np.vstack([p_est, top]), TAKEOFF_SPEED_M_S, self.vehicle)
         self._enter(Phase.TAKEOFF, CopterMode.GUIDED)
         self.add_event("takeoff")
-        self._say(MAV.MAV_SEVERITY_INFO, f"EMU: armed, taking off to {self.options.altitude_m:.1f} m")
+        self._say(MAV.MAV_SEVERITY_INFO, f"EMU: armed, taking off to {height_m:.1f} m")
 
     def _enter(self, phase: Phase, mode: CopterMode) -> None:
         self.phase = phase
@@ -829,6 +856,16 @@ class VehicleSim:
 
     def _next_phase(self, p_est_ned_m: np.ndarray) -> None:
         alt_m = self.options.altitude_m
+        path = self.options.mission_path_ned_m
+        if path is not None:  # the mission's places, then its landing (at home after a return to launch)
+            if self.phase is Phase.TAKEOFF:
+                self._guide = WaypointGuidance(np.vstack([p_est_ned_m, np.array(path[2:-1])]), self.options.mission_speed_m_s,
+                                               self.vehicle)
+                self._enter(Phase.SURVEY, CopterMode.AUTO)
+            elif self.phase is Phase.SURVEY:
+                self._land_target_ne_m = np.array(path[-1][:2])
+                self._enter(Phase.DESCEND, CopterMode.RTL if np.allclose(path[-1], 0.0) else CopterMode.LAND)
+            return
         if self.phase is Phase.TAKEOFF:
             wps = np.vstack([p_est_ned_m, lawnmower_waypoints(self.survey, alt_m)])
             self._guide = WaypointGuidance(wps, self.survey.speed_m_s, self.vehicle)
@@ -868,11 +905,13 @@ class VehicleSim:
             "truth_ned_m": [round(float(x), 4) for x in self.craft.p_ned_m],
             "estimate_ned_m": [round(float(x), 4) for x in p_est],
             "gps2_ned_m": None if (r2 := self.gps[1].reading(t_s)) is None else [round(float(x), 4) for x in r2.p_ned_m],
+            "gps2_h_acc_m": None if r2 is None else round(float(r2.h_acc_m), 4),
             "primary": self.selector.primary if any(g.fix_type(t_s) > FIX_NO_GPS for g in self.gps) else None,
             "gps1_fix": self.gps[0].fix_type(t_s),
             "gps2_fix": self.gps[1].fix_type(t_s),
             "gps2_healthy": self.gps[1].healthy(t_s),
             "mode": self.mode.name,
+            "phase": self.phase.value,
             "armed": self.armed,
             "nav": self.estimator.state(t_s),
         })
@@ -1345,6 +1384,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--gps-primary", type=int, choices=(0, 1), default=0, help="GPS_PRIMARY (default 0)")
     ap.add_argument("--survey-size", type=float, help="side of a square survey about home, m (default: the "
                                                       "mapping survey of SimConfig)")
+    ap.add_argument("--mission", type=Path, help="fly this mission (.waypoints or .plan) instead of the survey, at its "
+                                                 "own heights, then land where it ends (home after a return)")
+    ap.add_argument("--speed-m-s", type=float, default=5.0, help="with --mission: its speed, m/s (default 5)")
+    ap.add_argument("--gps-lost-at-waypoint", type=int, help="with --mission: disable GPS1 on reaching this item (its "
+                                                             "number in the file)")
     ap.add_argument("--log", type=Path, help="JSON log, written at the end")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--max-seconds", type=float, default=1800.0, help="hard stop, emulated s (default 1800)")
@@ -1371,6 +1415,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                                   max_seconds=args.max_seconds,
                                   faults=tuple(load_fault_plan(args.faults).faults) if args.faults else ()).validate()
         frame = load_world(args.world).frame
+        if args.mission is not None:
+            mission = load_mission(args.mission)
+            path, owner = mission_waypoints_ned(mission, frame)
+            lost = gps_lost_waypoint(mission, owner, args.gps_lost_at_waypoint) if args.gps_lost_at_waypoint is not None else None
+            options = replace(options, mission_path_ned_m=tuple(map(tuple, path.tolist())),
+                                          mission_speed_m_s=args.speed_m_s, fail_gps1_at_index=lost).validate()
+        elif args.gps_lost_at_waypoint is not None:
+            raise EmulatorError("--gps-lost-at-waypoint goes with --mission")
         return run_emulator(frame, options, port=args.port, speedup=args.speedup, log_path=args.log)
     except AuxGpsError as exc:
         print(f"vehicle_emulator: {exc}", file=sys.stderr)
