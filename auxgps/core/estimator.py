@@ -439,6 +439,15 @@ class Estimator:
             self._frame_fault = kind
         return fault, note
 
+    def _near_nadir(self, feats: Features, R_ned_body: np.ndarray) -> Features:
+        """``feats`` without those farther from straight down than ``detector.max_off_nadir_deg`` (all, unset)."""
+        max_deg = self.cfg.detector.max_off_nadir_deg
+        if max_deg is None or not len(feats):
+            return feats
+        down = self.camera.pixels_to_rays_cam(feats.uv_px) @ (R_ned_body @ self.R_body_cam)[2]
+        keep = down >= np.cos(np.deg2rad(max_deg))
+        return Features(feats.uv_px[keep], feats.descriptors[keep], feats.octave[keep], feats.scale)
+
     def _featureless_note(self, n_features: int) -> str | None:
         """A line for the events log when frames begin or stop having too few features to locate from."""
         least = self.cfg.positioning.min_inliers
@@ -473,7 +482,7 @@ class Estimator:
             cand = cand[self.landmarks.source[cand] == 0]
         scale = 1.0 if job.mapping else self.localiser.detection_scale(job.alt_above_origin_m, job.prior, cand if len(cand) else prior_cand)
         with sw("detection"):
-            feats = self.detector.detect(grey, job.R_ned_body @ self.R_body_cam, scale)
+            feats = self._near_nadir(self.detector.detect(grey, job.R_ned_body @ self.R_body_cam, scale), job.R_ned_body)
         note = _joined(note, self._featureless_note(len(feats)))
         mapped = None
         heading_sigma = None
