@@ -76,7 +76,7 @@ class DetectorConfig:
     north_aligned: bool = True  # descriptors oriented to north with the autopilot's heading, not per keypoint
     # Features whose ray is more than this far from straight down are dropped (None: none are): far off nadir a
     # tilt error moves a point by the height over cos^2 of its angle, and a multirotor at 8 m/s pitches 15 to 20
-    # deg, so the leading edge and corners of a 90 deg lens look out at 50 to 60 deg. Over Seneca at 40 m in the
+    # deg, so one edge and the corners of a 90 deg lens look out at 50 to 60 deg. Over Seneca at 40 m in the
     # closed loop, self-checks on such points reached 1 to 2 m and stopped mapping as if GPS1 were dragged
     # (docs/missions.md). 45: the image's corners go at any tilt (51 deg); cube worlds at 15 m lose nothing.
     max_off_nadir_deg: Annotated[float, Field(gt=0.0, lt=90.0)] | None = 45.0

@@ -580,3 +580,20 @@ def test_ray_mahalanobis2_is_the_distance_across_the_ray_in_any_basis_of_that_pl
         r = E @ (L[k] - c)
         S = E @ cov[k] @ E.T + sigma[k] ** 2 * np.eye(2)
         assert got[k] == pytest.approx(r @ np.linalg.solve(S, r), rel=1e-9)
+
+
+def test_features_far_off_nadir_are_dropped_as_the_camera_tilts(camera):
+    """Points on the ground 0, 30, 40, 50 and 60 deg from straight down ahead of a camera 40 m up: those past 45 deg
+    go. The angle is the ray's from the vertical, not from the lens's axis: pitched 20 deg nose down (as at speed),
+    the same points go (the lens looks back: from its axis they are 20 to 80 deg off, and a limit there keeps one)."""
+    from auxgps.core.features import near_nadir
+
+    angles_deg = np.array([0.0, 30.0, 40.0, 50.0, 60.0])
+    points = np.column_stack([40.0 * np.tan(np.deg2rad(angles_deg)), np.zeros(5), np.zeros(5)])
+    for pitch_deg in (0.0, -20.0):
+        R_ned_cam = R_ned_body_from_euler(0.0, np.deg2rad(pitch_deg), 0.0) @ R_BODY_CAM_DOWN
+        pose = CameraPose(np.array([0.0, 0.0, -40.0]), R_ned_cam)
+        feats = view(camera, pose, points, np.arange(5 * 32, dtype=np.uint8).reshape(5, 32))
+        kept = near_nadir(feats, camera, R_ned_cam, 45.0)
+        np.testing.assert_array_equal(kept.descriptors[:, 0], feats.descriptors[[0, 1, 2], 0])
+        assert near_nadir(feats, camera, R_ned_cam, None) is feats

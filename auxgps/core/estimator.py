@@ -41,7 +41,7 @@ import numpy as np
 from auxgps.config import PipelineConfig
 from auxgps.core.camera import camera_from_config
 from auxgps.core.events import Attitude, Frame, Gps1, Imu, Position
-from auxgps.core.features import FeatureDetector, Features, to_gray
+from auxgps.core.features import FeatureDetector, Features, near_nadir, to_gray
 from auxgps.core.frame_check import FrameCheck
 from auxgps.core.fusion import FusedEstimate, GateDecision, ImuSample, NavFilter
 from auxgps.core.geometry import LocalFrame, R_body_cam_from_mount, R_ned_body_from_euler
@@ -439,15 +439,6 @@ class Estimator:
             self._frame_fault = kind
         return fault, note
 
-    def _near_nadir(self, feats: Features, R_ned_body: np.ndarray) -> Features:
-        """``feats`` without those farther from straight down than ``detector.max_off_nadir_deg`` (all, unset)."""
-        max_deg = self.cfg.detector.max_off_nadir_deg
-        if max_deg is None or not len(feats):
-            return feats
-        down = self.camera.pixels_to_rays_cam(feats.uv_px) @ (R_ned_body @ self.R_body_cam)[2]
-        keep = down >= np.cos(np.deg2rad(max_deg))
-        return Features(feats.uv_px[keep], feats.descriptors[keep], feats.octave[keep], feats.scale)
-
     def _featureless_note(self, n_features: int) -> str | None:
         """A line for the events log when frames begin or stop having too few features to locate from."""
         least = self.cfg.positioning.min_inliers
@@ -482,7 +473,8 @@ class Estimator:
             cand = cand[self.landmarks.source[cand] == 0]
         scale = 1.0 if job.mapping else self.localiser.detection_scale(job.alt_above_origin_m, job.prior, cand if len(cand) else prior_cand)
         with sw("detection"):
-            feats = self._near_nadir(self.detector.detect(grey, job.R_ned_body @ self.R_body_cam, scale), job.R_ned_body)
+            R_ned_cam = job.R_ned_body @ self.R_body_cam
+            feats = near_nadir(self.detector.detect(grey, R_ned_cam, scale), self.camera, R_ned_cam, self.cfg.detector.max_off_nadir_deg)
         note = _joined(note, self._featureless_note(len(feats)))
         mapped = None
         heading_sigma = None

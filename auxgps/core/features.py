@@ -97,6 +97,16 @@ class FeatureDetector:
         return feats
 
 
+def near_nadir(feats: Features, camera, R_ned_cam: np.ndarray, max_off_nadir_deg: float | None) -> Features:
+    """``feats`` without those whose ray, through ``camera`` at attitude ``R_ned_cam``, is more than
+    ``max_off_nadir_deg`` from straight down (all of them when it is None)."""
+    if max_off_nadir_deg is None or not len(feats):
+        return feats
+    down = camera.pixels_to_rays_cam(feats.uv_px) @ np.asarray(R_ned_cam, float)[2]
+    keep = down >= np.cos(np.deg2rad(max_off_nadir_deg))
+    return Features(feats.uv_px[keep], feats.descriptors[keep], feats.octave[keep], feats.scale)
+
+
 def to_gray(image: np.ndarray) -> np.ndarray:
     """Validate a frame and return it as (H, W) uint8 grey. Raises :class:`FrameError` naming what is wrong."""
     if not isinstance(image, np.ndarray):
