@@ -472,16 +472,19 @@ class Estimator:
         if len(prior_cand):
             cand = cand[self.landmarks.source[cand] == 0]
         scale = 1.0 if job.mapping else self.localiser.detection_scale(job.alt_above_origin_m, job.prior, cand if len(cand) else prior_cand)
+        R_ned_cam = job.R_ned_body @ self.R_body_cam
         with sw("detection"):
-            R_ned_cam = job.R_ned_body @ self.R_body_cam
-            feats = near_nadir(self.detector.detect(grey, R_ned_cam, scale), self.camera, R_ned_cam, self.cfg.detector.max_off_nadir_deg)
+            feats = self.detector.detect(grey, R_ned_cam, scale)
         note = _joined(note, self._featureless_note(len(feats)))
         mapped = None
         heading_sigma = None
         if job.heading is not None:
             heading_sigma = float(np.hypot(np.deg2rad(self.cfg.noise.heading_deg), job.heading.sigma_rad))
+        # The self-check, which judges GPS1 by the map, locates on features near nadir only (see
+        # DetectorConfig.max_off_nadir_deg); the mapper and positioning take every feature.
+        locating = near_nadir(feats, self.camera, R_ned_cam, self.cfg.detector.max_off_nadir_deg) if job.mapping else feats
         with sw("locating"):
-            located = self.localiser.locate(feats, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior, cand, heading_sigma) \
+            located = self.localiser.locate(locating, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior, cand, heading_sigma) \
                 if len(cand) or not len(prior_cand) else None
             if len(prior_cand) and not isinstance(located, Fix):
                 prior_scale = 1.0 if job.mapping else self.localiser.detection_scale(job.alt_above_origin_m, job.prior, prior_cand)
