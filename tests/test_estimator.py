@@ -19,12 +19,12 @@ from tests.conftest import make_world
 T_UNIX_0 = 1_800_000_000.0  # s, the UTC the flight's clock starts at
 
 
-def flight_events(seed=3, denied_from_s=14.0, fps=3.0):
-    """A short survey over two cubes as the estimator's events, in delivery order: ("feed", telemetry),
-    ("frame", Frame) and ("output", t) at 10 Hz."""
+def flight_events(seed=3, denied_from_s=14.0, fps=3.0, half_m=3.0):
+    """A short survey (``2 * half_m`` square) over two cubes as the estimator's events, in delivery order:
+    ("feed", telemetry), ("frame", Frame) and ("output", t) at 10 Hz."""
     world = make_world([{"east_m": 1.0, "north_m": 1.0, "size_m": 1.0, "color": "red"},
                         {"east_m": -2.0, "north_m": -2.0, "size_m": 1.0, "color": "blue", "yaw_deg": 30}])
-    small = dict(north_min_m=-3.0, north_max_m=3.0, east_min_m=-3.0, east_max_m=3.0, spacing_m=3.0)
+    small = dict(north_min_m=-half_m, north_max_m=half_m, east_min_m=-half_m, east_max_m=half_m, spacing_m=3.0)
     sim = parse_as(SimConfig, {"mapping": small}, "test")
     rng_fly, rng_tel, rng_imu, rng_img = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
     traj = fly(lawnmower_waypoints(sim.mapping, 12.0), sim.mapping.speed_m_s, sim.vehicle, rng_fly, sim.dt_s)
@@ -216,6 +216,24 @@ def test_a_strap_sliding_over_the_lens_is_one_fault_in_the_events_log(flight):
     assert len(notes) == 2 and notes[0].startswith("camera fault: image") and notes[1] == "camera fault over (image black)", notes
 
 
+@pytest.mark.slow
+def test_a_lost_filter_fuses_again_only_once_a_run_of_fixes_lies_on_one_track():
+    """GPS1 lost at 14 s, then 16 s of black frames: no fix for longer than the supervisor allows, GPS_INPUT at no
+    fix. Its gate is wide then, so the first fixes after are held back ("re-acquiring") until those of the last
+    reinit_window_s span reinit_min_span_s on one track; then fixes are fused and GPS_INPUT has a 3D fix again."""
+    world, events, _ = flight_events(half_m=4.5)
+    dark = [(kind, Frame(e.t_s, np.zeros_like(e.image_bgr)) if kind == "frame" and 15.0 <= e.t_s < 31.0 else e)
+            for kind, e in events]
+    _, said = run(world, dark)
+    after = [(e.t_s, r) for (kind, e), r in zip(dark, said) if kind == "frame" and e.t_s >= 31.0 and r.kind == "visual"]
+    held = [t for t, r in after if r.reason.startswith("re-acquiring")]
+    fused = [t for t, r in after if r.decision.accepted]
+    assert held and fused, [r.reason for _, r in after]
+    assert fused[0] - held[0] >= PipelineConfig().fusion.reinit_min_span_s - 1e-9
+    fix_types = [(e, o.gps.fix_type) for (kind, e), o in zip(dark, said) if kind == "output"]
+    assert any(f == 1 for t, f in fix_types if 30.0 <= t < held[0]) and fix_types[-1][1] == 3
+
+
 def test_an_ambiguous_frame_widens_the_fixes_of_the_frames_after_it():
     """A frame whose two readings lay 0.6 m apart casts doubt on the next fixes of the same ground: a fix 0.3 m off
     moves the filter less right after it than it does without one, and the doubt lapses after
@@ -246,3 +264,16 @@ def test_an_ambiguous_frame_widens_the_fixes_of_the_frames_after_it():
     assert plain > 0.05  # the fix moves the filter
     assert doubted < 0.2 * plain  # right after an ambiguous frame, far less
     assert lapsed == plain  # 2.5 s later, the doubt has lapsed (2 s)
+
+
+def test_featureless_ground_is_said_once_it_has_lasted_a_second():
+    """A feature count hovering about the limit (a cube world's plain ground) says nothing; one under it for a
+    second says so once, and one over it for a second says it is over."""
+    from auxgps.core.geometry import LocalFrame
+
+    est = Estimator(PipelineConfig(), frame=LocalFrame(47.0, 8.0, 400.0))
+    few, many = PipelineConfig().positioning.min_inliers - 1, PipelineConfig().positioning.min_inliers + 5
+    frames = [(0.0, few), (0.5, many), (0.6, few), (1.0, few), (1.7, few), (2.0, many), (2.5, few), (3.0, many), (4.1, many)]
+    said = [est._featureless_note(t, n) for t, n in frames]
+    assert [k for k, line in enumerate(said) if line] == [4, 8], said
+    assert said[4].startswith("featureless ground: ") and said[8].startswith("featureless ground over")

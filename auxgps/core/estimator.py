@@ -221,6 +221,7 @@ class Estimator:
         # The placement error of the prior maps (orthophotos) loaded, the largest: the filter's offset state for them.
         self._map_offset_sigma_m = max((src.georef_sigma_h_m for src in self.landmarks.sources[1:]), default=0.0)
         self._acquiring: list[Fix] = []  # fixes located without a prior, while there is no filter
+        self._reacquiring: list[Fix] = []  # fixes held back while the filter is lost (see _lost_at)
         self.frame_check = FrameCheck()
         self._last_t_of: dict[type, float] = {}  # the newest time of each telemetry kind (duplicates, order)
         self._telemetry_fault_t: dict[str, float] = {}  # fault -> when last seen, for one events line per episode
@@ -228,7 +229,8 @@ class Estimator:
         self._attitude_lost = False
         self._pending_note: str | None = None  # said with the next finished frame
         self._frame_fault: str | None = None  # the camera fault in force (its kind), for the events log
-        self._featureless = False  # the last frame checked had too few features to locate from (water, a bare field)
+        self._featureless = False  # frames have had too few features to locate from (water, a bare field)
+        self._featureless_flip_t_s: float | None = None  # since when frames have said otherwise
         self._ambiguous: tuple[float, float] | None = None  # (when, how far apart) the last ambiguous frame's rivals
 
     # -- telemetry -----------------------------------------------------------------------------------------
@@ -439,12 +441,22 @@ class Estimator:
             self._frame_fault = kind
         return fault, note
 
-    def _featureless_note(self, n_features: int) -> str | None:
-        """A line for the events log when frames begin or stop having too few features to locate from."""
+    #: Frames must say the ground has turned featureless (or textured again) this long before the events log does:
+    #: over a cube world's plain ground the count hovers about the limit, and each line is a STATUSTEXT too.
+    FEATURELESS_HOLD_S = 1.0
+
+    def _featureless_note(self, t_s: float, n_features: int) -> str | None:
+        """A line for the events log when frames begin or stop having too few features to locate from, for
+        :attr:`FEATURELESS_HOLD_S` at least."""
         least = self.cfg.positioning.min_inliers
         if (n_features < least) == self._featureless:
+            self._featureless_flip_t_s = None
             return None
-        self._featureless = not self._featureless
+        if self._featureless_flip_t_s is None:
+            self._featureless_flip_t_s = t_s
+        if t_s - self._featureless_flip_t_s < self.FEATURELESS_HOLD_S:
+            return None
+        self._featureless, self._featureless_flip_t_s = not self._featureless, None
         if self._featureless:
             return f"featureless ground: {n_features} features, fewer than {least}; no fix from such frames"
         return f"featureless ground over ({n_features} features)"
@@ -475,7 +487,7 @@ class Estimator:
         R_ned_cam = job.R_ned_body @ self.R_body_cam
         with sw("detection"):
             feats = self.detector.detect(grey, R_ned_cam, scale)
-        note = _joined(note, self._featureless_note(len(feats)))
+        note = _joined(note, self._featureless_note(job.frame.t_s, len(feats)))
         mapped = None
         heading_sigma = None
         if job.heading is not None:
@@ -534,6 +546,9 @@ class Estimator:
             elif s > 0:
                 self.filter.learn_map_offset(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2], s)
             return FrameResult(t, "self-check", f"{d:.3f} m", self_check_m=d, **common)
+        held = self._held_back(res)
+        if held is not None:
+            return FrameResult(t, "visual", held, decision=GateDecision(res.t_s, False, np.nan, held), **common)
         cov_ne = res.cov_ned_m2[:2, :2]
         amb = self._ambiguous
         if amb is not None and 0.0 <= t - amb[0] <= self.cfg.fusion.ambiguity_memory_s:
@@ -548,6 +563,32 @@ class Estimator:
             common["note"] = _joined(common["note"], self._telemetry_fault(
                 f"visual fix refused: {decision.reason} ({self.cfg.fusion.history_s:g} s); frames are late", t))
         return FrameResult(t, "visual", decision.reason, decision=decision, **common)
+
+    def _lost_at(self, t_s: float) -> bool:
+        """Whether the filter is lost at ``t_s``: what makes GPS_INPUT say no fix (its horizontal sigma over the
+        supervisor's limit, or no correction for ``max_fix_age_s``)."""
+        sup = self.supervisor.cfg
+        last = self.last_correction_t_s
+        return (last is None or t_s - last > sup.max_fix_age_s
+                or self.filter.estimate_at(t_s).sigma_h_worst_m > sup.max_sigma_h_m)
+
+    def _held_back(self, fix: Fix) -> str | None:
+        """Why ``fix`` is held back from a lost filter, or None to fuse it. Lost, the filter's gate is wide, and
+        over alike ground (crop rows a few metres apart) a wrong reading passes it: so, as at acquisition, a fix
+        is fused only once the fixes of the last ``reinit_window_s``, at least ``acquisition_fixes`` of them
+        spanning ``reinit_min_span_s``, lie on one track (:func:`track_through`)."""
+        if not self._lost_at(fix.t_s):
+            self._reacquiring = []
+            return None
+        fusion = self.cfg.fusion
+        run = [f for f in self._reacquiring if fix.t_s - fusion.reinit_window_s <= f.t_s < fix.t_s] + [fix]
+        self._reacquiring = run
+        span_s = run[-1].t_s - run[0].t_s
+        if (len(run) >= fusion.acquisition_fixes and span_s >= fusion.reinit_min_span_s
+                and track_through(run, fusion.gate_chi2, fusion.acquisition_max_speed_m_s) is not None):
+            self._reacquiring = []
+            return None
+        return f"re-acquiring: {len(run)} fixes over {span_s:.1f} s, not yet on one track over {fusion.reinit_min_span_s:g} s"
 
     def _heading_from_view(self, job: FrameJob, work: FrameWork) -> None:
         """Give the heading tracker a mapping frame's view: each landmark the frame fed, its ray put on the ground
