@@ -221,7 +221,7 @@ class Estimator:
         # The placement error of the prior maps (orthophotos) loaded, the largest: the filter's offset state for them.
         self._map_offset_sigma_m = max((src.georef_sigma_h_m for src in self.landmarks.sources[1:]), default=0.0)
         self._acquiring: list[Fix] = []  # fixes located without a prior, while there is no filter
-        self._reacquiring: list[Fix] = []  # fixes held back while the filter is lost (see _lost_at)
+        self._reacquiring: list[Fix] = []  # fixes held back while the filter is lost (see _held_back)
         self.frame_check = FrameCheck()
         self._last_t_of: dict[type, float] = {}  # the newest time of each telemetry kind (duplicates, order)
         self._telemetry_fault_t: dict[str, float] = {}  # fault -> when last seen, for one events line per episode
@@ -564,20 +564,15 @@ class Estimator:
                 f"visual fix refused: {decision.reason} ({self.cfg.fusion.history_s:g} s); frames are late", t))
         return FrameResult(t, "visual", decision.reason, decision=decision, **common)
 
-    def _lost_at(self, t_s: float) -> bool:
-        """Whether the filter is lost at ``t_s``: what makes GPS_INPUT say no fix (its horizontal sigma over the
-        supervisor's limit, or no correction for ``max_fix_age_s``)."""
-        sup = self.supervisor.cfg
-        last = self.last_correction_t_s
-        return (last is None or t_s - last > sup.max_fix_age_s
-                or self.filter.estimate_at(t_s).sigma_h_worst_m > sup.max_sigma_h_m)
-
     def _held_back(self, fix: Fix) -> str | None:
-        """Why ``fix`` is held back from a lost filter, or None to fuse it. Lost, the filter's gate is wide, and
-        over alike ground (crop rows a few metres apart) a wrong reading passes it: so, as at acquisition, a fix
-        is fused only once the fixes of the last ``reinit_window_s``, at least ``acquisition_fixes`` of them
-        spanning ``reinit_min_span_s``, lie on one track (:func:`track_through`)."""
-        if not self._lost_at(fix.t_s):
+        """Why ``fix`` is held back from a lost filter (one the supervisor does not believe: GPS_INPUT says no fix),
+        or None to fuse it. Lost, the filter's gate is wide, and over alike ground (crop rows a few metres apart) a
+        wrong reading passes it: so, as at acquisition, a fix is fused only once the fixes of the last
+        ``reinit_window_s``, at least ``acquisition_fixes`` of them spanning ``reinit_min_span_s``, lie on one track
+        (:func:`track_through`)."""
+        lost = not self.supervisor.believes(fix.t_s, sigma_h_worst_m=self.filter.estimate_at(fix.t_s).sigma_h_worst_m,
+                                            last_correction_t_s=self.last_correction_t_s)  # GPS_INPUT says no fix
+        if not lost:
             self._reacquiring = []
             return None
         fusion = self.cfg.fusion

@@ -220,6 +220,18 @@ class Supervisor:
         return self._distrust_as_dragged(t_s, f"GPS1 drifts {np.linalg.norm(mean):.1f} m from map: distrusted, no mapping "
                                               f"(mean of the last {n} self-checks; spoofing or a failing receiver?)")
 
+    def believes(self, t_s: float, *, sigma_h_worst_m: float | None, last_correction_t_s: float | None) -> bool:
+        """Whether auxgps believes its estimate at ``t_s`` (else GPS_INPUT says no fix): corrected within
+        ``max_fix_age_s`` and its horizontal sigma at most ``max_sigma_h_m``."""
+        cfg = self.cfg
+        return (
+            sigma_h_worst_m is not None
+            and bool(np.isfinite(sigma_h_worst_m))
+            and sigma_h_worst_m <= cfg.max_sigma_h_m
+            and last_correction_t_s is not None
+            and t_s - last_correction_t_s <= cfg.max_fix_age_s
+        )
+
     def decide(self, t_s: float, *, sigma_h_worst_m: float | None, last_correction_t_s: float | None) -> Decision:
         """The mode at ``t_s`` given the filter's horizontal sigma and the time of its last correction."""
         cfg = self.cfg
@@ -227,13 +239,7 @@ class Supervisor:
             self.gps1_trusted = False
             self._agree_since = None
             self._say("GPS1 silent: positioning visually", t_s)
-        believed = (
-            sigma_h_worst_m is not None
-            and np.isfinite(sigma_h_worst_m)
-            and sigma_h_worst_m <= cfg.max_sigma_h_m
-            and last_correction_t_s is not None
-            and t_s - last_correction_t_s <= cfg.max_fix_age_s
-        )
+        believed = self.believes(t_s, sigma_h_worst_m=sigma_h_worst_m, last_correction_t_s=last_correction_t_s)
         mode = Mode.MAPPING if (self.gps1_trusted and believed) else Mode.POSITIONING if believed else Mode.NO_FIX
         if mode != self.mode:
             self._say(f"auxgps: {mode.value}", t_s)
