@@ -13,7 +13,8 @@ the failure (rms, max), and whether GPS2 carried a 3D fix; writes result.json, t
 auxgps's logs (run/) to --out. Exit 0 if it landed within 1 m. ``--busy N`` keeps N processes spinning at normal
 priority for the whole flight (a companion computer's other work); ``--run-args="..."`` adds options to
 `auxgps run`. The JSON also gives the intervals between the GPS_INPUT messages sent (ArduPilot's rule: a mean under
-215 ms, never two in a row over 245 ms) and the autopilot's failsafe and EKF STATUSTEXTs. ``--faults FILE`` takes
+215 ms, never two in a row over 245 ms), the autopilot's failsafe and EKF STATUSTEXTs, and from SITL's dataflash
+log how long after GPS1 was disabled ArduPilot made another GPS primary (``gps_primary_changed_after_s``). ``--faults FILE`` takes
 the fault file of `auxgps eval --faults` and applies its GPS1 faults through SITL's own parameters, ``at_s`` after
 take-off: a drag by SIM_GPS1_GLTCH_X/Y (set five times a second), an inflated accuracy by SIM_GPS1_ACC (the
 reported accuracy only), dropouts by SIM_GPS1_ENABLE. ``--mission FILE --gps-lost-at-waypoint N [--alt-m A]
@@ -205,6 +206,25 @@ def timeline(fix_rows: list, sent_rows: list, failed_at_mono: float, delay_s: fl
                     "max_err_m": round(max(e for e, _ in errs), 2) if errs else None,
                     "max_sigma_m": round(max(s for _, s in errs), 2) if errs else None})
     return out
+
+
+#: ArduPilot's dataflash event for a change of primary GPS (LogEvent::GPS_PRIMARY_CHANGED; no STATUSTEXT says it).
+EV_GPS_PRIMARY_CHANGED = 67
+
+
+def primary_changes_after_gps1_off(bin_path: Path) -> list[float]:
+    """Seconds from the first ``SIM_GPS1_ENABLE = 0`` in SITL's dataflash log to each change of primary GPS after it
+    (empty: GPS1 never disabled, or no change), on the autopilot's own clock."""
+    from pymavlink import DFReader
+
+    log = DFReader.DFReader_binary(str(bin_path))
+    off_us, changes = None, []
+    while (m := log.recv_match(type=["PARM", "EV"])) is not None:
+        if m.get_type() == "PARM" and m.Name == "SIM_GPS1_ENABLE" and m.Value == 0 and off_us is None:
+            off_us = m.TimeUS
+        elif m.get_type() == "EV" and m.Id == EV_GPS_PRIMARY_CHANGED and off_us is not None:
+            changes.append(round((m.TimeUS - off_us) / 1e6, 3))
+    return changes
 
 
 def score_logs(gs: GroundStation, run_dir: Path, failed_at_mono: float, delay_s: float) -> dict:
@@ -507,6 +527,9 @@ def main(argv=None) -> int:
         result["auxgps_said"] = [r["text"] for r in csv.DictReader(open(out / "run" / "events.csv"))][-40:]
         result["busy_processes"] = args.busy
         result["cpu_steal"] = gs.steal.figures()  # beside events.csv's "GPS_INPUT timer held up" (the same clock)
+        logs = sorted(Path(scratch, "logs").glob("*.BIN"))
+        changes = primary_changes_after_gps1_off(logs[-1]) if logs else []
+        result["gps_primary_changed_after_s"] = changes[0] if changes else None
     finally:
         for p in busy:
             p.kill()
