@@ -234,6 +234,35 @@ def test_a_lost_filter_fuses_again_only_once_a_run_of_fixes_lies_on_one_track():
     assert any(f == 1 for t, f in fix_types if 30.0 <= t < held[0]) and fix_types[-1][1] == 3
 
 
+def test_a_lost_filters_fixes_are_checked_against_its_dead_reckoning_which_follows_the_braking():
+    """Braking at 3 m/s^2 over 2 s (arriving home), fixes 3 cm apart from the truth: no constant-velocity track goes
+    through them, but less the filter's dead reckoning (which the IMU keeps braking with the vehicle, 2.2 m off and
+    drifting 0.1 m/s) they say one offset, and it is the dead reckoning's. One fix 4 m off (a wrong reading), or
+    offsets drifting 3 m/s where the filter's velocity is good to 0.3 m/s, do not tell one story."""
+    from auxgps.core.estimator import offset_from_dead_reckoning, track_through
+    from auxgps.core.localise import Fix
+
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 2.01, 0.1)
+    truth = np.stack([8.0 * t - 1.5 * t**2, 0.2 * t], axis=1)
+    b_true, u_true = np.array([2.0, -1.0]), np.array([0.1, 0.05])
+    dr = truth + b_true + u_true * (t - t[-1])[:, None]
+    cov_v, gate = np.eye(2) * 0.3**2, PipelineConfig().fusion.gate_chi2
+
+    def fixes(p_ne):
+        return [Fix(float(tk), np.array([*p, -40.0]), np.eye(3) * 0.03**2, 100, 200, 600) for tk, p in zip(t, p_ne)]
+
+    seen = truth + rng.normal(0.0, 0.015, truth.shape)  # inside their stated 3 cm
+    offset = offset_from_dead_reckoning(fixes(seen), dr, cov_v, gate)
+    assert offset is not None and np.allclose(offset, -b_true, atol=0.05), offset
+    assert track_through(fixes(seen), gate, 30.0) is None  # braking is no constant-velocity track
+    wrong = seen.copy()
+    wrong[12] += [4.0, 0.0]
+    assert offset_from_dead_reckoning(fixes(wrong), dr, cov_v, gate) is None
+    drifting = truth + np.array([3.0, 0.0]) * t[:, None] + rng.normal(0.0, 0.015, truth.shape)
+    assert offset_from_dead_reckoning(fixes(drifting), truth, cov_v, gate) is None
+
+
 def test_an_ambiguous_frame_widens_the_fixes_of_the_frames_after_it():
     """A frame whose two readings lay 0.6 m apart casts doubt on the next fixes of the same ground: a fix 0.3 m off
     moves the filter less right after it than it does without one, and the doubt lapses after
