@@ -145,7 +145,7 @@ def _demo(args) -> int:
     else:
         print(f"auxgps demo: the vehicle emulator flies a survey over {args.world}; GPS1 fails after 60 s;")
     print("auxgps, a separate process on loopback, keeps the autopilot flying on GPS2. A control run flies without auxgps.")
-    figures = run_demo(args.world, out_dir=args.out_dir, mission=mission)
+    figures = run_demo(args.world, out_dir=args.out_dir, mission=mission, sim_camera_fps=args.sim_camera_fps)
     print(json.dumps(figures, indent=2))
     print(f"report: {args.out_dir}/report.png, {args.out_dir}/report.json")
     _write_json(args.json, figures)
@@ -182,6 +182,7 @@ def _run(args) -> int:
         frame_nice=args.nice,
         take_primary_on_drift=args.take_primary_on_drift,
         stall_report_s=args.stall_report,
+        sim_camera_fps=args.sim_camera_fps,
     )
     return Companion(load_pipeline_config(args.config), opts).run()
 
@@ -615,6 +616,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--connect-timeout", type=_positive(float), default=15.0,
                    help="at start, give up after this many seconds without a connection (default 15)")
     p.add_argument("--camera", required=True, help="sim:WORLD.yaml (rendered at the simulator's truth), a video file, or a device index")
+    p.add_argument("--sim-camera-fps", type=_positive(float), metavar="F",
+                   help="with --camera sim:WORLD, render F frames a second in a thread of its own, as a camera delivers "
+                        "(frames the loop cannot take are dropped, the newest kept); default: one frame per loop")
     p.add_argument("--config", help="pipeline config YAML")
     p.add_argument("--map", action="append",
                    help="load this map file at start (it must exist and be readable): a flight's, or a prior map from "
@@ -742,6 +746,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mission", help="fly this mission instead of the survey (.waypoints or .plan), at its own heights")
     p.add_argument("--speed-m-s", type=_positive(float), default=5.0, help="with --mission: its speed, m/s (default 5)")
     p.add_argument("--gps-lost-at-waypoint", type=_positive(int), help="with --mission: the item on reaching which GPS1 fails")
+    p.add_argument("--sim-camera-fps", type=_positive(float), metavar="F",
+                   help="the simulated camera delivers F frames a second, as a real one does (default: one per frame loop); "
+                        "the report's frames say how many were processed and dropped, and the capture to GPS_INPUT time")
     p.add_argument("--json", help="also write the figures here")
     p.set_defaults(func=_demo)
     return parser

@@ -10,12 +10,16 @@ this process's monotonic clock.
 from __future__ import annotations
 
 import faulthandler
+import json
 import logging
 import os
 import threading
 import time
-from pathlib import Path
+from array import array
 from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
 
 from auxgps.config import PipelineConfig
 from auxgps.core.estimator import Estimator, EstimatorOptions, FrameResult
@@ -116,6 +120,44 @@ class StallWatch:
         self._file.close()
 
 
+class FrameStats:
+    """What the frame loop kept up with: each frame's processing time, and the time from its capture to the first
+    GPS_INPUT sent after it was done (the first that can carry its fix; frames done before GPS_INPUT is sent at all,
+    before GPS1's first fix, have none). Thread-safe: the frame loop and the GPS_INPUT timer both report."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._sending = False  # a GPS_INPUT has been sent
+        self._done: list[float] = []  # capture times of the frames done since the last GPS_INPUT
+        self.processing_ms = array("d")
+        self.latency_ms = array("d")
+
+    def frame_done(self, t_capture_s: float, processing_ms: float) -> None:
+        with self._lock:
+            if self._sending:
+                self._done.append(t_capture_s)
+            self.processing_ms.append(processing_ms)
+
+    def gps_input_sent(self, t_s: float) -> None:
+        with self._lock:
+            self.latency_ms.extend((t_s - t) * 1e3 for t in self._done)
+            self._done.clear()
+            self._sending = True
+
+    def figures(self, delivered: int | None, dropped: int | None) -> dict:
+        """Frames processed (and, for a source that counts them, delivered and dropped), with the medians, 99th
+        percentiles and maxima of the two times, ms."""
+        with self._lock:
+            proc, lat = np.asarray(self.processing_ms), np.asarray(self.latency_ms)
+
+        def stats(x):
+            return {"median": round(float(np.median(x)), 1), "p99": round(float(np.percentile(x, 99)), 1),
+                    "max": round(float(x.max()), 1)} if len(x) else None
+
+        return {"frames_processed": len(proc), "frames_delivered": delivered, "frames_dropped": dropped,
+                "processing_ms": stats(proc), "capture_to_gps_input_ms": stats(lat)}
+
+
 @dataclass(frozen=True)
 class RunOptions:
     connect: str
@@ -133,6 +175,7 @@ class RunOptions:
     frame_nice: int = 0  # frame processing this many niceness steps below the timer and the reader (Linux: per thread)
     take_primary_on_drift: bool = False  # opt-in: make GPS2 the autopilot's primary while GPS1 is found dragged
     stall_report_s: float = 0.5  # the GPS_INPUT timer held up this long: every thread's stack to stalls.txt (0: off)
+    sim_camera_fps: float | None = None  # sim: cameras only: render this many frames a second in a thread, as a camera delivers
 
 
 class Companion:
@@ -157,9 +200,12 @@ class Companion:
         self._lock = threading.Lock()
         self._truth: Truth | None = None
         self._stop = threading.Event()
-        self.link = MavLink(opts.connect, self._on_message, sim=opts.camera.startswith("sim:"))
+        # A simulated camera's truth at twice its frame rate: each frame is rendered from a truth under half a frame old
+        self.link = MavLink(opts.connect, self._on_message, sim=opts.camera.startswith("sim:"),
+                            sim_hz=max(20.0, 2.0 * (opts.sim_camera_fps or 0.0)))
         est = self.estimator
-        self.camera = open_camera(opts.camera, est.camera, est.R_body_cam, truth=lambda: self._truth)
+        self.camera = open_camera(opts.camera, est.camera, est.R_body_cam, truth=lambda: self._truth, sim_fps=opts.sim_camera_fps)
+        self.frame_stats = FrameStats()
         self.sent = 0
         self._mode = None  # the last GPS_INPUT's mode (timer thread)
         self._checkpoint_wanted = threading.Event()  # a mode change asks the frame thread for a checkpoint
@@ -228,6 +274,7 @@ class Companion:
             return
         if self.link.send_gps_input(out.gps, int((t_unix_s - self.opts.gps_delay_s) * 1e6)):
             self.sent += 1
+            self.frame_stats.gps_input_sent(time.monotonic())
         self.log.output(out)
         if out.decision.status:
             self.link.send_statustext(out.decision.status)
@@ -238,6 +285,7 @@ class Companion:
     # -- frames (main thread) -------------------------------------------------------------------------------
 
     def _process(self, frame) -> FrameResult:
+        t0 = time.monotonic()
         with self._lock:
             k = self.recorder.begin(frame) if self.recorder is not None else None
             job = self.estimator.begin_frame(frame)
@@ -249,6 +297,7 @@ class Companion:
                 if self.recorder is not None:
                     self.recorder.finish(k)
                 res = self.estimator.finish_frame(work)
+        self.frame_stats.frame_done(frame.t_s, (time.monotonic() - t0) * 1e3)
         self.log.frame(res, self.estimator.frame)
         if res.note:
             self._event(res.t_s, res.note)
@@ -281,12 +330,30 @@ class Companion:
         now = time.monotonic()
         if now - t_said < every_s:
             return
-        n = getattr(self.camera, "dropped", 0)
+        n = getattr(self.camera, "dropped", None) or 0
         self._dropped_said = (now, n)
         if n > n_said:
             line = f"camera: {n - n_said} frames dropped in {now - t_said:.0f} s, processing slower than the camera (the newest is kept)"
             self._event(now, line)
             log.info("%s", line)
+
+    def _say_frame_figures(self) -> None:
+        """The flight's frame figures, to frames.json in the log folder and as an event line."""
+        fig = self.frame_stats.figures(getattr(self.camera, "delivered", None), getattr(self.camera, "dropped", None))
+        try:
+            (Path(self.opts.log_dir) / "frames.json").write_text(json.dumps(fig, indent=2))
+        except OSError as err:  # a full disk at the end must not hide the rest of the shutdown
+            log.error("frames.json not written: %s", err)
+        lat, proc = fig["capture_to_gps_input_ms"], fig["processing_ms"]
+        line = f"frames: {fig['frames_processed']} processed"
+        if fig["frames_delivered"]:
+            line += f" of {fig['frames_delivered']} the camera delivered ({fig['frames_dropped']} dropped, the newest kept)"
+        if proc:
+            line += f"; processing median {proc['median']:.0f} ms, p99 {proc['p99']:.0f} ms"
+        if lat:
+            line += f"; capture to GPS_INPUT median {lat['median']:.0f} ms, p99 {lat['p99']:.0f} ms"
+        self._event(time.monotonic(), line)
+        log.info("%s", line)
 
     def _checkpoint_if_due(self) -> None:
         if self._checkpoint_wanted.is_set():
@@ -325,6 +392,7 @@ class Companion:
             self.link.stop()
             self.camera.close()
             self._checkpoint("end of flight")
+            self._say_frame_figures()
             self.log.close()
             if self.recorder is not None:
                 stats = self.recorder.close()

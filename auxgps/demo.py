@@ -34,10 +34,12 @@ def _emulator(world: str, port: int, log: Path, flight: list[str], gps2_type: in
 
 
 def run_demo(world: str, out_dir: str = "out/demo", fail_at_s: float = 60.0, max_s: float = 480.0,
-             mission: tuple[str, ...] = ()) -> dict:
+             mission: tuple[str, ...] = (), sim_camera_fps: float | None = None) -> dict:
     """Fly the closed loop and the control run at once; return the figures (also written as JSON and PNG).
     ``mission``: the emulator's options that fly a mission instead of the survey (``--mission``, ``--speed-m-s``,
-    ``--gps-lost-at-waypoint``); GPS1 then fails where they say instead of ``fail_at_s`` after take-off."""
+    ``--gps-lost-at-waypoint``); GPS1 then fails where they say instead of ``fail_at_s`` after take-off.
+    ``sim_camera_fps``: the simulated camera delivers that many frames a second (`auxgps run --sim-camera-fps`)
+    instead of one per frame loop."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     port, port_ctl = _free_port(), _free_port()
@@ -47,7 +49,8 @@ def run_demo(world: str, out_dir: str = "out/demo", fail_at_s: float = 60.0, max
     time.sleep(1.0)
     run = subprocess.Popen(
         [sys.executable, "-m", "auxgps.cli", "run", "--connect", f"tcp:127.0.0.1:{port}", "--camera", f"sim:{world}",
-         "--log-dir", str(out / "run"), "--duration", str(max_s)],
+         "--log-dir", str(out / "run"), "--duration", str(max_s),
+         *(["--sim-camera-fps", str(sim_camera_fps)] if sim_camera_fps else [])],
         stdout=open(out / "run.log", "w"), stderr=subprocess.STDOUT,
     )
     events: queue.Queue[str] = queue.Queue()
@@ -108,6 +111,7 @@ def report(out: Path) -> dict:
                     "gps2_error_max_m": float(gps2_err.max()) if len(down) else None,
                     "gps2_within_3_reported": float(np.mean(gps2_err <= 3.0 * gps2_acc)) if len(down) else None},
         "exit": log.get("exit_reason"),
+        "frames": json.loads((out / "run" / "frames.json").read_text()) if (out / "run" / "frames.json").exists() else None,
         "control": {"landing_error_m": ctl.get("landing_error_m"), "exit": ctl.get("exit_reason"),
                     "failsafe": any(e.get("event") == "failsafe" for e in ctl.get("events", []))},
     }

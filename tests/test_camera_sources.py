@@ -122,3 +122,54 @@ def test_a_live_frame_keeps_the_drivers_capture_time_when_it_is_on_the_monotonic
     assert capture_time(1000.30, 4_000.0) == 1000.30  # a stream position, not this clock
     assert capture_time(1000.30, 1000_500.0) == 1000.30  # after the read: not a capture time
     assert capture_time(1000.30, float("nan")) == 1000.30
+
+
+def test_a_frame_rate_for_a_camera_that_is_not_simulated_is_refused_by_name(tmp_path):
+    with pytest.raises(ConfigError, match="goes with sim:WORLD only"):
+        open_camera(str(tmp_path), CAMERA, R_BODY_CAM_DOWN, sim_fps=30.0)
+
+
+def test_a_simulated_camera_whose_thread_fails_names_the_failure_to_the_frame_loop():
+    def truth():
+        raise RuntimeError("truth source gone")
+
+    cam = open_camera("sim:one_cube_1m", CAMERA, R_BODY_CAM_DOWN, truth=truth, sim_fps=50.0)
+    try:
+        with pytest.raises(ConfigError, match="simulated camera stopped: RuntimeError: truth source gone"):
+            for _ in range(100):
+                cam.read(timeout_s=0.1)
+    finally:
+        cam.close()
+
+
+@pytest.mark.realtime
+def test_a_simulated_camera_at_its_own_rate_gives_the_newest_frame_and_counts_those_not_taken():
+    """The simulator's truth at 100 Hz, the camera at 50 frames a second, a frame loop taking 100 ms: each frame read
+    is the newest (rendered from a truth under 50 ms old), and about four of every five are dropped, not queued."""
+    import time
+
+    from auxgps.io.link import Truth
+    from auxgps.sim.world import load_world
+
+    frame = load_world("one_cube_1m").frame
+    t0 = time.monotonic()
+
+    def truth():
+        t = t0 + np.floor((time.monotonic() - t0) * 100.0) / 100.0
+        lat, lon, alt = frame.to_geodetic(np.array([0.0, 2.0 * (t - t0), -10.0]))
+        return Truth(t, float(lat), float(lon), float(alt), np.zeros(3))
+
+    cam = open_camera("sim:one_cube_1m", CAMERA, R_BODY_CAM_DOWN, truth=truth, sim_fps=50.0)
+    try:
+        ages, times = [], []
+        for _ in range(10):
+            f = cam.read(timeout_s=1.0)
+            assert f is not None
+            ages.append(time.monotonic() - f.t_s)
+            times.append(f.t_s)
+            time.sleep(0.1)  # processing
+    finally:
+        cam.close()
+    assert max(ages) < 0.05, ages
+    assert np.all(np.diff(times) > 0.05)  # never a queued older frame
+    assert cam.delivered >= 40 and cam.dropped >= 30, (cam.delivered, cam.dropped)

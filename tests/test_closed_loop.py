@@ -88,6 +88,10 @@ def test_short_flight_over_a_serial_line_lands_home_on_gps2(short_flight):
     assert (tmp_path / "map.npz").exists()  # saved at the end of the flight, atomically
     events = (tmp_path / "run" / "events.csv").read_text()
     assert "GPS1 lost" in events and "positioning" in events
+    # What the frame loop kept up with, said at the end of the flight
+    frames = json.loads((tmp_path / "run" / "frames.json").read_text())
+    assert frames["frames_processed"] > 100 and "frames: " in events
+    assert 0.0 < frames["capture_to_gps_input_ms"]["median"] < 500.0, frames
 
 
 def replay_cli(*args: str) -> subprocess.CompletedProcess:

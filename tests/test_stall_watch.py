@@ -31,3 +31,4 @@ def test_a_timer_held_up_past_its_limit_writes_where_every_thread_was(tmp_path):
     watch = StallWatch(tmp_path / "stalls.txt", timeout_s=0.3)  # a new watch judges only what it writes itself
     watch.close()
     assert not watch.wrote()
+

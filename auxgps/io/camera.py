@@ -24,14 +24,52 @@ from auxgps.errors import ConfigError
 log = logging.getLogger(__name__)
 
 
+class NewestFrame:
+    """The newest frame a source's own thread delivered, kept until the frame loop takes it; one not taken before
+    the next arrives is dropped, never queued (a frame that waited is a fix at a position the drone has left).
+    ``delivered`` and ``dropped`` count them; an error the thread met is raised to the reader."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._frame: Frame | None = None
+        self._error: Exception | None = None
+        self.delivered = 0
+        self.dropped = 0
+
+    def put(self, frame: Frame) -> None:
+        with self._cond:
+            if self._frame is not None:
+                self.dropped += 1
+            self._frame = frame
+            self.delivered += 1
+            self._cond.notify()
+
+    def fail(self, err: Exception) -> None:
+        with self._cond:
+            self._error = err
+            self._cond.notify()
+
+    def take(self, timeout_s: float) -> Frame | None:
+        with self._cond:
+            if self._frame is None and self._error is None:
+                self._cond.wait(timeout_s)
+            if self._error is not None:
+                raise self._error
+            frame, self._frame = self._frame, None
+            return frame
+
+
 class SimCamera:
     """Renders a world file at the pose the simulator says is true (SIMSTATE / SIM_STATE).
 
     ``truth()`` returns the latest :class:`auxgps.io.link.Truth` or None. The world's origin must be where the
-    simulator's home is. A truth sample is rendered once.
+    simulator's home is. A truth sample is rendered once. Without ``fps`` a frame is rendered when the frame loop
+    reads (as fast as it processes). With ``fps`` a thread of its own renders the newest truth that many times a
+    second, as a camera delivers, and the frame loop gets the newest frame (:class:`NewestFrame`: the rest are
+    dropped and counted); the truth must come at least that often (`auxgps run` asks for it at twice ``fps``).
     """
 
-    def __init__(self, world_path: str, camera: PinholeCamera, R_body_cam: np.ndarray, truth: Callable) -> None:
+    def __init__(self, world_path: str, camera: PinholeCamera, R_body_cam: np.ndarray, truth: Callable, fps: float | None = None) -> None:
         # The simulator is loaded only when this source is asked for: the flying code imports none of it.
         from auxgps.sim.render import Renderer
         from auxgps.sim.world import load_world
@@ -40,9 +78,25 @@ class SimCamera:
         self.renderer = Renderer(self.world, camera)
         self.R_body_cam = R_body_cam
         self.truth = truth
+        self.fps = fps
         self._last_t: float | None = None
+        self._slot = NewestFrame() if fps else None
+        self._stop = threading.Event()
+        self._thread = None
+        if fps:
+            self._thread = threading.Thread(target=self._render_loop, daemon=True, name="sim-camera")
+            self._thread.start()
 
-    def read(self) -> Frame | None:
+    @property
+    def delivered(self) -> int | None:
+        """Frames the rendering thread delivered (None: rendered on reading, nothing to drop)."""
+        return self._slot.delivered if self._slot is not None else None
+
+    @property
+    def dropped(self) -> int | None:
+        return self._slot.dropped if self._slot is not None else None
+
+    def _render_newest(self) -> Frame | None:
         tr = self.truth()
         if tr is None or tr.t_s == self._last_t:
             return None
@@ -53,8 +107,33 @@ class SimCamera:
         pose = CameraPose(np.asarray(p, float), R_ned_body_from_euler(*tr.euler_rad) @ self.R_body_cam)
         return Frame(tr.t_s, self.renderer.render(pose).image_bgr)
 
+    def _render_loop(self) -> None:
+        period = 1.0 / self.fps
+        next_t = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                next_t += period
+                frame = self._render_newest()
+                if frame is not None:
+                    self._slot.put(frame)
+                delay = next_t - time.monotonic()
+                if delay > 0:
+                    self._stop.wait(delay)
+                else:
+                    next_t = time.monotonic()  # rendering fell behind the rate: on from now, no burst
+        except Exception as err:  # noqa: BLE001 - the reader names it; a dead thread must not look like a still camera
+            log.exception("simulated camera stopped")
+            self._slot.fail(ConfigError(f"simulated camera stopped: {type(err).__name__}: {err}"))
+
+    def read(self, timeout_s: float = 0.05) -> Frame | None:
+        if self._slot is not None:
+            return self._slot.take(timeout_s)
+        return self._render_newest()
+
     def close(self) -> None:
-        pass
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
 
 
 def capture_time(read_s: float, pos_msec: float) -> float:
@@ -90,10 +169,7 @@ class CaptureCamera:
         self._t0 = time.monotonic()
         self._n = 0
         self._checked = False
-        self.dropped = 0
-        self._newest: tuple[float, np.ndarray] | None = None
-        self._error: ConfigError | None = None
-        self._cond = threading.Condition()
+        self._slot = NewestFrame()
         self._stop = threading.Event()
         self._grabber = None
         if live:
@@ -123,24 +199,22 @@ class CaptureCamera:
                 if not self._check(image):
                     continue
             except ConfigError as err:
-                with self._cond:
-                    self._error = err
+                self._slot.fail(err)
                 return
-            with self._cond:
-                if self._newest is not None:
-                    self.dropped += 1
-                self._newest = (t, image)
-                self._cond.notify()
+            self._slot.put(Frame(t, image))
+
+    @property
+    def delivered(self) -> int | None:
+        """Frames the live source delivered (None: a file, read in turn, nothing to drop)."""
+        return self._slot.delivered if self.live else None
+
+    @property
+    def dropped(self) -> int | None:
+        return self._slot.dropped if self.live else None
 
     def read(self, timeout_s: float = 0.05) -> Frame | None:
         if self.live:
-            with self._cond:
-                if self._newest is None and self._error is None:
-                    self._cond.wait(timeout_s)
-                if self._error is not None:
-                    raise self._error
-                newest, self._newest = self._newest, None
-            return Frame(*newest) if newest is not None else None
+            return self._slot.take(timeout_s)
         ok, image = self.cap.read()
         if not ok:
             return None  # end of file
@@ -188,19 +262,23 @@ class ImageFolderCamera:
         pass
 
 
-def open_camera(spec: str, camera: PinholeCamera, R_body_cam: np.ndarray, truth: Callable | None = None):
+def open_camera(spec: str, camera: PinholeCamera, R_body_cam: np.ndarray, truth: Callable | None = None, sim_fps: float | None = None):
     """A camera source from ``--camera``:
 
-    - ``sim:WORLD`` the simulated world rendered at the simulator's true pose (SITL, the emulator);
+    - ``sim:WORLD`` the simulated world rendered at the simulator's true pose (SITL, the emulator); with
+      ``sim_fps``, rendered that many times a second by a thread of its own, as a camera delivers;
     - ``0`` a device index, ``/dev/video0`` a V4L2 device;
     - a GStreamer pipeline (any text with ``!``, ending in ``appsink``), or an ``rtsp://`` or ``http://`` stream;
     - a video file, or a folder of images (in name order).
     """
     size = (camera.width_px, camera.height_px)
+    if sim_fps is not None and not spec.startswith("sim:"):
+        raise ConfigError(f"a simulated camera's frame rate was given for camera {spec!r}: it goes with sim:WORLD only "
+                          "(a real camera delivers at its own rate)")
     if spec.startswith("sim:"):
         if truth is None:
             raise ConfigError("camera sim: needs the simulator's truth (SIMSTATE / SIM_STATE) from the link")
-        return SimCamera(spec[4:], camera, R_body_cam, truth)
+        return SimCamera(spec[4:], camera, R_body_cam, truth, fps=sim_fps)
     if spec.isdigit():
         return CaptureCamera(int(spec), live=True, size=size)
     if spec.startswith("/dev/"):

@@ -37,7 +37,7 @@ STREAMS_HZ = {
     mav.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
     mav.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
 }
-SIM_STREAMS_HZ = {mav.MAVLINK_MSG_ID_SIMSTATE: 20.0, mav.MAVLINK_MSG_ID_SIM_STATE: 20.0}
+SIM_STREAMS_HZ = {mav.MAVLINK_MSG_ID_SIMSTATE: 20.0, mav.MAVLINK_MSG_ID_SIM_STATE: 20.0}  # raised to a simulated camera's rate
 
 
 @dataclass(frozen=True)
@@ -209,11 +209,12 @@ class MavLink:
     """
 
     def __init__(self, url: str, on_message: Callable[[object, float], None], *, sim: bool = False, timeout_s: float = 3.0,
-                 source_system: int = 1, source_component: int = mav.MAV_COMP_ID_ONBOARD_COMPUTER) -> None:
+                 source_system: int = 1, source_component: int = mav.MAV_COMP_ID_ONBOARD_COMPUTER, sim_hz: float = 20.0) -> None:
         self.address = parse_link_url(url)
         self.url = self.address.url
         self.on_message = on_message
         self.sim = sim
+        self.sim_hz = sim_hz  # the simulator's truth (SIM_STATE), for a simulated camera: at least its frame rate
         self.timeout_s = timeout_s
         self.source_system, self.source_component = source_system, source_component
         self.target_system: int | None = None
@@ -403,7 +404,7 @@ class MavLink:
             self._send(lambda m: m.heartbeat_encode(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE))
 
     def request_streams(self) -> None:
-        streams = {**STREAMS_HZ, **(SIM_STREAMS_HZ if self.sim else {})}
+        streams = {**STREAMS_HZ, **({i: max(hz, self.sim_hz) for i, hz in SIM_STREAMS_HZ.items()} if self.sim else {})}
         for msg_id, hz in streams.items():
             self._send(lambda m, i=msg_id, h=hz: m.command_long_encode(
                 self.target_system or 1, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0, i, 1e6 / h, 0, 0, 0, 0, 0))
