@@ -27,7 +27,7 @@ from auxgps.errors import LinkError
 from auxgps.io.camera import open_camera
 from auxgps.io.flight_log import FlightLog
 from auxgps.io.link import Decoder, MavLink, Truth
-from auxgps.io.map_file import load_maps, save_map
+from auxgps.io.map_file import load_maps, save_map, saved_heading
 from auxgps.io.recording import Recorder
 
 log = logging.getLogger(__name__)
@@ -192,6 +192,11 @@ class Companion:
                 save_map(start_map, landmarks, frame)
         self.estimator = Estimator(cfg, EstimatorOptions(gps_delay_s=opts.gps_delay_s, gps1_lag_s=opts.gps1_lag_s),
                                    landmarks=landmarks, frame=frame)
+        if opts.map_in and self.estimator.heading is not None:
+            # The heading error the map's own flight had solved (a checkpoint read after a crash), aged since
+            saved = saved_heading(opts.map_in[0])
+            if saved is not None:
+                self.estimator.heading.restore(saved["offset_rad"], saved["sigma_rad"], max(time.time() - saved["unix_s"], 0.0))
         self.log = FlightLog(opts.log_dir)
         self.recorder = None
         if opts.record_dir:
@@ -312,8 +317,12 @@ class Companion:
         if not self.opts.map_out or est.frame is None:
             return
         t0 = time.monotonic()
+        heading = None
+        if est.heading is not None:
+            h = est.heading.at(time.monotonic())
+            heading = {"offset_rad": h.offset_rad, "sigma_rad": h.sigma_rad, "unix_s": time.time()}
         try:
-            save_map(self.opts.map_out, est.landmarks, est.frame)
+            save_map(self.opts.map_out, est.landmarks, est.frame, heading=heading)
         except OSError as err:  # a full or read-only disk must not end the flight; the previous checkpoint stays
             log.error("map checkpoint to %s failed (%s): %s", self.opts.map_out, why, err)
             return

@@ -168,3 +168,20 @@ def test_a_burst_of_correlated_frames_tells_what_a_few_independent_ones_do():
     for k in range(5):
         spaced.observe_turn(2.5 * k, -np.deg2rad(0.4), np.deg2rad(0.3) ** 2, 0.0)
     assert np.rad2deg(spaced.at(10.0).sigma_rad) < 1.05 * sigma_frame / np.sqrt(5)
+
+
+def test_a_restored_heading_error_is_aged_toward_the_prior_by_the_time_since_it_was_saved():
+    """Read back from a checkpoint seconds after a crash, the saved estimate is nearly as it was; read back after
+    many correlation times (a map reused another day), it is the prior again."""
+    cfg = HeadingConfig(solve=True)
+    fresh = HeadingTracker(cfg)
+    fresh.restore(np.deg2rad(1.5), np.deg2rad(0.2), elapsed_s=2.0)
+    e = fresh.at(100.0)
+    assert abs(np.degrees(e.offset_rad) - 1.5) < 0.02 and np.degrees(e.sigma_rad) < 0.35  # 0.2 deg, and 2 s of drift
+    stale = HeadingTracker(cfg)
+    stale.restore(np.deg2rad(1.5), np.deg2rad(0.2), elapsed_s=20 * cfg.tau_s)
+    e = stale.at(100.0)
+    assert abs(np.degrees(e.offset_rad)) < 1e-6 and np.isclose(np.degrees(e.sigma_rad), cfg.sigma_deg)
+    broken = HeadingTracker(cfg)
+    broken.restore(float("nan"), 0.01, 1.0)
+    assert broken.at(0.0).offset_rad == 0.0 and np.isclose(np.degrees(broken.at(0.0).sigma_rad), cfg.sigma_deg)

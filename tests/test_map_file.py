@@ -8,7 +8,7 @@ import pytest
 from auxgps.core.geometry import LocalFrame
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.errors import MapError
-from auxgps.io.map_file import load_map, save_map
+from auxgps.io.map_file import load_map, save_map, saved_heading
 
 FRAME = LocalFrame(47.397742, 8.545594, 488.0)
 
@@ -31,6 +31,16 @@ def test_round_trip(tmp_path):
         assert np.array_equal(getattr(back, name)[: len(lm)], getattr(lm, name)[: len(lm)])
     back.add(np.zeros((1, 32), np.uint8), np.zeros((1, 3)), np.eye(3)[None], np.ones(1))  # still growable
     assert len(back) == len(lm) + 1
+
+
+def test_a_checkpoint_keeps_the_heading_error_its_flight_had_solved(tmp_path):
+    heading = {"offset_rad": 0.031, "sigma_rad": 0.004, "unix_s": 1_800_000_000.0}
+    save_map(tmp_path / "h.npz", some_map(), FRAME, heading=heading)
+    assert saved_heading(tmp_path / "h.npz") == heading
+    save_map(tmp_path / "none.npz", some_map(), FRAME)
+    assert saved_heading(tmp_path / "none.npz") is None  # a map without it: the heading is learnt afresh
+    save_map(tmp_path / "bad.npz", some_map(), FRAME, heading={"offset_rad": "north-ish"})
+    assert saved_heading(tmp_path / "bad.npz") is None
 
 
 def test_version_2_file_is_read_with_unknown_descriptor_ranges(tmp_path):

@@ -116,6 +116,17 @@ class HeadingTracker:
         self.n_used = 0
         self.n_refused = 0
 
+    def restore(self, offset_rad: float, sigma_rad: float, elapsed_s: float) -> None:
+        """Start from an estimate saved ``elapsed_s`` ago (a map checkpoint, read again after a crash), decayed
+        toward the prior as the Gauss-Markov process decays: seconds after, nearly as it was; after many
+        ``tau_s``, the prior again. A non-finite or negative part leaves the prior."""
+        if not (np.isfinite(offset_rad) and np.isfinite(sigma_rad) and sigma_rad >= 0 and np.isfinite(elapsed_s) and elapsed_s >= 0):
+            return
+        phi = float(np.exp(-elapsed_s / self.cfg.tau_s))
+        self._b = offset_rad * phi
+        self._var = min(sigma_rad**2 * phi**2 + self._sigma2 * (1.0 - phi**2), self._sigma2)
+        self._t = None
+
     def _decayed(self, t_s: float) -> tuple[float, float]:
         if self._t is None or t_s <= self._t:
             return self._b, self._var

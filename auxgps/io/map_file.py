@@ -29,7 +29,9 @@ array                   shape, dtype       meaning
 
 A map built from an orthophoto (``auxgps map build --orthophoto``) also holds ``prior`` in ``meta``: the
 orthophoto, the build's ground sample distance, how heights were found, and the camera focal length its
-descriptor ranges assume.
+descriptor ranges assume. A flight's map written while the heading solver runs holds ``heading`` in ``meta``:
+the autopilot's heading error as solved then (``offset_rad``, ``sigma_rad``) and the wall time (``unix_s``), which
+`auxgps run --map` starts its solver from, aged by the time since (:func:`saved_heading`).
 
 Versions 1 to 3 are still read: version 3 is version 4 without ``source`` and ``sources`` (one source: the
 flight, or for a photo map its photos), version 2 is version 3 without ``descriptor_range_m`` (read as unknown), and
@@ -107,16 +109,32 @@ def _origin(frame: LocalFrame) -> dict:
     return {"lat_deg": frame.lat_deg, "lon_deg": frame.lon_deg, "alt_amsl_m": frame.alt_amsl_m}
 
 
-def save_map(path: Path | str, landmarks: LandmarkMap, frame: LocalFrame, prior: dict | None = None) -> None:
+def save_map(path: Path | str, landmarks: LandmarkMap, frame: LocalFrame, prior: dict | None = None,
+             heading: dict | None = None) -> None:
     """Write a flight map (ORB ``landmarks``, anchored at ``frame``) to ``path`` atomically; ``prior``: what a map
-    built from an orthophoto says about its making (``meta["prior"]``)."""
+    built from an orthophoto says about its making (``meta["prior"]``); ``heading``: the autopilot's heading error
+    as the flight had solved it when the map was written (``meta["heading"]``: ``offset_rad``, ``sigma_rad``,
+    ``unix_s``), so that a restart after a crash need not learn it again."""
     n = len(landmarks)
     kind = "sift" if landmarks.descriptors.shape[1] == DESCRIPTOR_BYTES["sift"] else "orb"
     meta = {"format": FORMAT, "version": VERSION, "origin": _origin(frame), "count": n, "descriptor": kind,
             "sources": [s.to_json() for s in landmarks.sources]}
     if prior is not None:
         meta["prior"] = prior
+    if heading is not None:
+        meta["heading"] = heading
     _write(Path(path), meta, {name: getattr(landmarks, name)[:n] for name in _COLUMNS})
+
+
+def saved_heading(path: Path | str) -> dict | None:
+    """The heading error a flight map was written with (see :func:`save_map`), or None: a map without it, or one
+    whose entry is malformed (the flight then learns the heading afresh)."""
+    h = _read(Path(path))[0].get("heading")
+    try:
+        out = {k: float(h[k]) for k in ("offset_rad", "sigma_rad", "unix_s")}
+    except (TypeError, KeyError, ValueError):
+        return None
+    return out if all(np.isfinite(v) for v in out.values()) else None
 
 
 def _read(path: Path) -> tuple[dict, dict, LocalFrame]:
