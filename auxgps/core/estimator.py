@@ -154,30 +154,46 @@ class Track:
     cov_v_m2_s2: np.ndarray
 
 
+def _offset_and_rate(fixes: list[Fix], ref_ne_m: np.ndarray, gate_chi2: float, info_rate: np.ndarray | None = None,
+                     shared_sigma_m: float = 0.0) -> tuple[np.ndarray, np.ndarray] | None:
+    """Weighted least squares of ``fixes`` less ``ref_ne_m`` (N, 2) as ``b + u (t_i - t_last)`` (north, east):
+    ``x = (b, u)`` and its covariance, or None when a fix lies off the fit by more than the gate (squared
+    Mahalanobis ``gate_chi2``) or the fit has no solution. ``info_rate``: a prior N(0, its inverse) on ``u``;
+    ``shared_sigma_m``: added to each fix's sigma on both axes."""
+    t_last = fixes[-1].t_s
+    N, b, rows = np.zeros((4, 4)), np.zeros(4), []
+    if info_rate is not None:
+        N[2:, 2:] = info_rate
+    for f, ref in zip(fixes, ref_ne_m):
+        A = np.hstack([np.eye(2), np.eye(2) * (f.t_s - t_last)])
+        W = np.linalg.inv(f.cov_ned_m2[:2, :2] + np.eye(2) * shared_sigma_m**2)
+        d = f.p_ned_m[:2] - ref
+        N += A.T @ W @ A
+        b += A.T @ W @ d
+        rows.append((A, W, d))
+    try:
+        cov = np.linalg.inv(N)
+    except np.linalg.LinAlgError:
+        return None  # fixes all at one time and no prior: no rate
+    x = cov @ b
+    if any(float((d - A @ x) @ W @ (d - A @ x)) > gate_chi2 for A, W, d in rows):
+        return None
+    return x, cov
+
+
 def track_through(fixes: list[Fix], gate_chi2: float, max_speed_m_s: float) -> Track | None:
     """The weighted least-squares constant-velocity track through ``fixes`` (each with its covariance), or None
     when any fix lies off it by more than the gate (squared Mahalanobis ``gate_chi2``) or its speed is beyond
     ``max_speed_m_s``: fixes that do not tell one story start no filter."""
     if len(fixes) < 2:
         return None
-    t_last = fixes[-1].t_s
-    N, b, rows = np.zeros((4, 4)), np.zeros(4), []
-    for f in fixes:
-        A = np.hstack([np.eye(2), np.eye(2) * (f.t_s - t_last)])
-        W = np.linalg.inv(f.cov_ned_m2[:2, :2])
-        N += A.T @ W @ A
-        b += A.T @ W @ f.p_ned_m[:2]
-        rows.append((A, W, f.p_ned_m[:2]))
-    try:
-        cov = np.linalg.inv(N)
-    except np.linalg.LinAlgError:
-        return None  # fixes all at one time: no velocity
-    x = cov @ b
-    if any(float((p - A @ x) @ W @ (p - A @ x)) > gate_chi2 for A, W, p in rows):
+    fit = _offset_and_rate(fixes, np.zeros((len(fixes), 2)), gate_chi2)
+    if fit is None:
         return None
+    x, cov = fit
     if float(np.linalg.norm(x[2:])) > max_speed_m_s:
         return None
-    return Track(float(t_last), x[:2], x[2:], cov[:2, :2], cov[2:, 2:])
+    return Track(float(fixes[-1].t_s), x[:2], x[2:], cov[:2, :2], cov[2:, 2:])
 
 
 def offset_from_dead_reckoning(fixes: list[Fix], dr_ne_m: np.ndarray, cov_v_ne: np.ndarray, gate_chi2: float,
@@ -188,37 +204,22 @@ def offset_from_dead_reckoning(fixes: list[Fix], dr_ne_m: np.ndarray, cov_v_ne: 
 
     Lost, the filter is off by an offset that drifts with its velocity error, so each fix less the dead reckoning
     says ``d_i = b + u (t_i - t_last)``: ``b`` the offset, ``u`` the velocity error, a priori N(0, ``cov_v_ne``)
-    (the filter's own velocity covariance). Weighted least squares for both; None if a fix lies off the fit by
-    more than the gate (squared Mahalanobis ``gate_chi2``) or ``u`` is beyond the gate of its prior. Each fix's
-    covariance is taken with ``shared_sigma_m`` added (the error fixes share, the filter's ``fix_bias_sigma_m``: the
-    map's errors, which change as the view moves over it, frame to frame). Unlike a
-    constant-velocity track (:func:`track_through`, for a start without a filter), this holds through the
-    vehicle's own turns, braking and descent, which the IMU has followed."""
+    (the filter's own velocity covariance). Weighted least squares for both (:func:`_offset_and_rate`, as
+    :func:`track_through` fits a track); None if a fix lies off the fit by more than the gate (squared Mahalanobis
+    ``gate_chi2``) or ``u`` is beyond the gate of its prior. Each fix's covariance is taken with ``shared_sigma_m``
+    added (the error fixes share, the filter's ``fix_bias_sigma_m``: the map's errors, which change as the view
+    moves over it, frame to frame). Unlike a constant-velocity track (for a start without a filter), this holds
+    through the vehicle's own turns, braking and descent, which the IMU has followed."""
     if len(fixes) < 2:
         return None
-    t_last = fixes[-1].t_s
     try:
         info_u = np.linalg.inv(np.asarray(cov_v_ne, float))
     except np.linalg.LinAlgError:
         return None
-    N, g, rows = np.zeros((4, 4)), np.zeros(4), []
-    N[2:, 2:] = info_u
-    for f, dr in zip(fixes, np.asarray(dr_ne_m, float)):
-        A = np.hstack([np.eye(2), np.eye(2) * (f.t_s - t_last)])
-        W = np.linalg.inv(f.cov_ned_m2[:2, :2] + np.eye(2) * shared_sigma_m**2)
-        d = f.p_ned_m[:2] - dr
-        N += A.T @ W @ A
-        g += A.T @ W @ d
-        rows.append((A, W, d))
-    try:
-        x = np.linalg.solve(N, g)
-    except np.linalg.LinAlgError:
+    fit = _offset_and_rate(fixes, np.asarray(dr_ne_m, float), gate_chi2, info_u, shared_sigma_m)
+    if fit is None or float(fit[0][2:] @ info_u @ fit[0][2:]) > gate_chi2:
         return None
-    if any(float((d - A @ x) @ W @ (d - A @ x)) > gate_chi2 for A, W, d in rows):
-        return None
-    if float(x[2:] @ info_u @ x[2:]) > gate_chi2:
-        return None
-    return x[:2]
+    return fit[0][:2]
 
 
 def prior_map_detector(cfg: PipelineConfig) -> FeatureDetector:
