@@ -226,6 +226,11 @@ class HeadingConfig:
     decorrelation_s: Positive = 2.0
     gate_chi2: Positive = 9.0  # 3 sigma on the one degree of freedom
     reset_after: Annotated[int, Field(ge=2)] = 10  # refused in a row: the error has jumped, the estimate reopens
+    # The landmarks seen within follow_s are geotagged again with the error as solved now, each time it has moved
+    # turn_step_deg (LandmarkMap.turn): the first ones are mapped while the solver knows little. A tenth of tau_s,
+    # over which the error itself changes little; 0: never.
+    follow_s: NonNegative = 30.0
+    turn_step_deg: Positive = 0.02
 
 
 @dataclass(config=_STRICT, frozen=True)

@@ -153,3 +153,85 @@ def test_a_journal_says_when_it_cannot_reach_back_and_keeps_only_its_span():
     no_journal = random_map(5, rng)
     _observe_at(no_journal, np.arange(5), [1.0, 0.0, 0.0], 1.0, rng)
     assert no_journal.journal_bytes == 0 and no_journal.roll_back(0.0)[0].size == 0
+
+
+
+def _rz(a_rad):
+    c, s = np.cos(a_rad), np.sin(a_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _map_leg(lm, L, cameras, corrections_rad, true_rad, t0_s=0.0, turn=True, step_rad=np.deg2rad(0.01)):
+    """Map landmarks ``L`` (K, 3) from each camera in turn, as the mapper does: each view's rays turned by what the
+    heading correction of its moment leaves of the true error; between views, the map turned (in steps) as the
+    correction moves, then to the true error at the end (``turn``). Returns the ids and the largest error before
+    that last turn."""
+    from auxgps.core.geometry import intersect_rays_with_horizontal_plane
+    from auxgps.core.mapping import ray_information
+    from auxgps.core.retag import HeadingView
+
+    def turn_to(b_from, b_to):
+        steps = np.linspace(b_from, b_to, int(abs(b_to - b_from) / step_rad) + 2)
+        for b_before, b in zip(steps[:-1], steps[1:]):
+            lm.turn(b, b_before, t0_s - 1.0)
+
+    ids = None
+    for k, (c, b) in enumerate(zip(cameras, corrections_rad)):
+        if turn and k:
+            turn_to(corrections_rad[k - 1], b)
+        d = (L - c) / np.linalg.norm(L - c, axis=1, keepdims=True) @ _rz(true_rad - b).T
+        A = ray_information(d, np.full(len(L), 0.05))
+        view = HeadingView(b, c) if turn else None
+        if ids is None:
+            p0, _ = intersect_rays_with_horizontal_plane(c, d, 0.0)
+            A[:, 2, 2] += 1.0 / 3.0**2
+            ids = lm.add(np.zeros((len(L), 32), np.uint8), p0, A, np.ones(len(L), np.float16), t_first_s=t0_s + k, view=view)
+        else:
+            lm.observe(ids, A, np.einsum("nij,j->ni", A, c), np.zeros((len(L), 32), np.uint8), np.ones(len(L), np.float16),
+                       np.zeros(len(L)), t_s=t0_s + k, view=view)
+    err_m = np.abs(lm.p_ned_m[ids] - L).max()
+    if turn:
+        turn_to(corrections_rad[-1], true_rad)
+    return ids, err_m
+
+
+def test_turn_geotags_landmarks_again_as_the_heading_solved_later_puts_them():
+    """A leg mapped while the solver's heading correction moved (2, 1.4, then 0.8 deg, the true error): rays turned
+    by different amounts put landmarks up to a metre off, in height as well; turned again as the correction moved,
+    every landmark is where the true heading puts it, within millimetres. Landmarks seen before the window and a
+    loaded map's (no views kept) stay as they are."""
+    rng = np.random.default_rng(5)
+    L = np.column_stack([rng.uniform(-20, 40, 30), rng.uniform(-25, 25, 30), np.zeros(30)])
+    cameras = [np.array([n, 0.0, -40.0]) for n in (0.0, 8.0, 16.0, 24.0)]
+    true_rad = np.deg2rad(0.8)
+    corrections = np.deg2rad([2.0, 1.4, 0.8, 0.8])
+    not_turned = LandmarkMap()
+    ids_not_turned, _ = _map_leg(not_turned, L, cameras, corrections, true_rad, turn=False)
+    assert np.abs(not_turned.p_ned_m[ids_not_turned] - L).max() > 0.8
+    lm = LandmarkMap()
+    loaded = lm.merge(not_turned)
+    old, _ = _map_leg(lm, L, cameras, corrections, true_rad, t0_s=0.0)
+    ids, _ = _map_leg(lm, L, cameras, corrections, true_rad, t0_s=100.0)
+    assert np.abs(lm.p_ned_m[ids] - L).max() < 0.005
+    # The first leg's landmarks left the window (last seen 100 s earlier) before the second leg turned the map.
+    assert np.abs(lm.p_ned_m[old] - L).max() < 0.005 and len(lm.recent_views) == len(ids)
+    np.testing.assert_array_equal(lm.p_ned_m[loaded], not_turned.p_ned_m[ids_not_turned])
+    # Views that share one correction are turned exactly, however far: one turn of 1.2 deg.
+    at_once = LandmarkMap()
+    ids_at_once, _ = _map_leg(at_once, L, cameras, np.deg2rad([2.0, 2.0, 2.0, 2.0]), true_rad, step_rad=np.deg2rad(5.0))
+    assert np.abs(at_once.p_ned_m[ids_at_once] - L).max() < 0.005
+    p_now = lm.p_ned_m[ids].copy()
+    lm.turn(true_rad, true_rad, 99.0)  # to the same correction: nothing moves
+    np.testing.assert_allclose(lm.p_ned_m[ids], p_now, atol=1e-5)
+    assert np.array_equal(lm.ids_in_box((-30.0, 50.0), (-30.0, 30.0)), lm.ids_in_box_scan((-30.0, 50.0), (-30.0, 30.0)))
+
+
+def test_an_undo_forgets_the_views_of_what_it_put_back():
+    rng = np.random.default_rng(6)
+    L = np.column_stack([rng.uniform(-20, 40, 10), rng.uniform(-25, 25, 10), np.zeros(10)])
+    lm = LandmarkMap()
+    lm.keep_journal(30.0)
+    ids, _ = _map_leg(lm, L, [np.array([n, 0.0, -40.0]) for n in (0.0, 8.0, 16.0)], np.deg2rad([1.0, 1.0, 1.0]), np.deg2rad(1.0))
+    assert len(lm.recent_views) == len(ids)
+    lm.roll_back(0.5)
+    assert len(lm.recent_views) == 0 and np.all(lm.recent_views.rows(ids) < 0)

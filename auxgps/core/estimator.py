@@ -249,6 +249,7 @@ class Estimator:
         self.localiser = Localiser(cfg, self.camera, self.R_body_cam, self.landmarks, self.stopwatch)
         self.supervisor = Supervisor(self.options.supervisor)
         self.heading = HeadingTracker(cfg.heading) if cfg.heading.solve else None
+        self._map_turned_to: float | None = None  # the heading error the map was last geotagged again with
         self.landmarks.keep_journal(self.supervisor.cfg.undo_span_s)
         self._undo_found_at_s: float | None = None  # GPS1 found dragged by the gate: the map is to be undone
         self.filter: NavFilter | None = None
@@ -554,7 +555,8 @@ class Estimator:
                     located = on_prior
         if job.mapping:
             with sw("mapping"):
-                mapped = self.mapper.process(feats, NavSample(job.frame.t_s, job.p_gps_ned_m, job.alt_above_origin_m, job.R_ned_body))
+                mapped = self.mapper.process(feats, NavSample(job.frame.t_s, job.p_gps_ned_m, job.alt_above_origin_m, job.R_ned_body,
+                                                              job.heading.offset_rad if job.heading is not None else None))
         return FrameWork(job, feats, mapped, located, note)
 
     def finish_frame(self, work: FrameWork) -> FrameResult:
@@ -569,6 +571,8 @@ class Estimator:
         common = dict(mapping=job.mapping, located=res, mapped=work.mapped, features=work.features, note=note)
         if job.mapping and work.mapped is not None:
             self._heading_from_view(job, work)
+            if job.heading is not None:
+                self._turn_map(t, job.heading.offset_rad)
         if not isinstance(res, Fix):
             if res.rivals_apart_m is not None and not job.mapping:
                 self._ambiguous = (t, res.rivals_apart_m)
@@ -634,6 +638,23 @@ class Estimator:
             return None
         return (f"re-acquiring: {len(run)} fixes over {span_s:.1f} s, not yet one story with the dead reckoning over "
                 f"{fusion.reinit_min_span_s:g} s")
+
+    def _turn_map(self, t_s: float, b_mapped: float) -> None:
+        """Geotag the landmarks mapped in the last ``heading.follow_s`` again with the heading error as solved now,
+        once it has moved ``heading.turn_step_deg`` since the last time: the first landmarks of a flight are mapped
+        while the solver still knows little, and a map turned by what it then believed stays turned for the return."""
+        cfg = self.cfg.heading
+        if self.heading is None:
+            return
+        b = self.heading.at(t_s).offset_rad
+        if self._map_turned_to is None:
+            self._map_turned_to = b_mapped  # what the views so far were geotagged with
+        with self.stopwatch("mapping"):
+            if cfg.follow_s > 0 and abs(b - self._map_turned_to) >= np.deg2rad(cfg.turn_step_deg):
+                self.landmarks.turn(b, self._map_turned_to, t_s - cfg.follow_s)
+                self._map_turned_to = b
+            else:
+                self.landmarks.recent_views.forget_before(t_s - cfg.follow_s)
 
     def _heading_from_view(self, job: FrameJob, work: FrameWork) -> None:
         """Give the heading tracker a mapping frame's view: each landmark the frame fed, its ray put on the ground

@@ -20,6 +20,34 @@ import pymap3d
 R_BODY_CAM_DOWN = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
 
+_TRIU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
+
+
+def pack_sym(M: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) symmetric -> (..., 6) upper triangle."""
+    return M[..., _TRIU[0], _TRIU[1]]
+
+
+def unpack_sym(v: np.ndarray) -> np.ndarray:
+    """(..., 6) upper triangle -> (..., 3, 3) symmetric."""
+    v = np.asarray(v, float)
+    M = np.empty(v.shape[:-1] + (3, 3))
+    M[..., _TRIU[0], _TRIU[1]] = v
+    M[..., _TRIU[1], _TRIU[0]] = v
+    return M
+
+
+def solve_sym3(a_packed: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``A^-1 v`` for symmetric positive definite ``A`` given packed (..., 6), ``v`` (..., 3), by cofactors: for
+    thousands of 3x3 systems at once, several times faster than ``np.linalg.solve``."""
+    a00, a01, a02, a11, a12, a22 = np.moveaxis(np.asarray(a_packed, float), -1, 0)
+    c00, c01, c02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
+    c11, c12, c22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    v0, v1, v2 = np.moveaxis(np.asarray(v, float), -1, 0)
+    return np.stack([c00 * v0 + c01 * v1 + c02 * v2, c01 * v0 + c11 * v1 + c12 * v2, c02 * v0 + c12 * v1 + c22 * v2], axis=-1) / det[..., None]
+
+
 def cross_matrix(v: np.ndarray) -> np.ndarray:
     """Cross-product matrices ``[v]x`` (..., 3, 3) of vectors ``v`` (..., 3): ``[v]x @ u = v x u``."""
     v = np.asarray(v, float)

@@ -20,23 +20,9 @@ from collections import deque
 import numpy as np
 
 from auxgps.core.features import DESCRIPTOR_BYTES
+from auxgps.core.geometry import pack_sym, unpack_sym
 from auxgps.core.prior_map import FLIGHT, MapSource, main_source, shared_sigma_h_m
-
-_TRIU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
-
-
-def pack_sym(M: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) symmetric -> (..., 6) upper triangle."""
-    return M[..., _TRIU[0], _TRIU[1]]
-
-
-def unpack_sym(v: np.ndarray) -> np.ndarray:
-    """(..., 6) upper triangle -> (..., 3, 3) symmetric."""
-    v = np.asarray(v, float)
-    M = np.empty(v.shape[:-1] + (3, 3))
-    M[..., _TRIU[0], _TRIU[1]] = v
-    M[..., _TRIU[1], _TRIU[0]] = v
-    return M
+from auxgps.core.retag import HeadingView, RecentViews, turned
 
 
 class GridIndex:
@@ -192,6 +178,8 @@ class LandmarkMap:
         # the flight uses to position but never refines (their error is the source's, shared by all of them).
         self.source = np.zeros(capacity, np.uint8)
         self.sources: list[MapSource] = [FLIGHT]
+        # This flight's recent views, for :meth:`turn` (not saved: a loaded map's landmarks are not turned).
+        self.recent_views = RecentViews()
         self._journal: deque[tuple[float, np.ndarray, dict[str, np.ndarray]]] | None = None
         self._journal_span_s = 0.0
         self._journal_forgot_s = -np.inf  # the newest change the journal has let go of (it cannot undo to before it)
@@ -237,6 +225,7 @@ class LandmarkMap:
         self._n = 0
         self.sources = [FLIGHT]
         self.index.invalidate()
+        self.recent_views.clear()
         if self._journal is not None:
             self._journal.clear()
             self._journal_forgot_s = -np.inf
@@ -281,6 +270,7 @@ class LandmarkMap:
         new = np.flatnonzero(self.t_first_s[: self._n] > since_t_s)
         self.demote(new)
         restored = np.setdiff1d(np.concatenate(touched) if touched else np.zeros(0, int), new).astype(int)
+        self.recent_views.forget(np.concatenate([restored, new]))  # put back or out of use: not turned again
         return restored, new, since_t_s >= self._journal_forgot_s
 
     @property
@@ -296,7 +286,9 @@ class LandmarkMap:
         allocated = sum(a.nbytes for a in self._columns())
         index = self.index.nbytes
         journal = self.journal_bytes
-        return {"columns": used, "slack": allocated - used, "index": index, "journal": journal, "total": allocated + index + journal}
+        views = self.recent_views.nbytes
+        return {"columns": used, "slack": allocated - used, "index": index, "journal": journal, "recent_views": views,
+                "total": allocated + index + journal + views}
 
     def reindex(self) -> None:
         """Rebuild the spatial index at the next query (after positions were written directly)."""
@@ -322,8 +314,9 @@ class LandmarkMap:
             setattr(self, name, new)
 
     def add(self, descriptors: np.ndarray, p_ned_m: np.ndarray, info: np.ndarray, view_cos: np.ndarray,
-            descriptor_range_m: np.ndarray | float = np.nan, t_first_s: float = -np.inf) -> np.ndarray:
-        """Append landmarks seen once (at ``t_first_s``). info (M, 3, 3) 1/m^2. Returns their ids (M,)."""
+            descriptor_range_m: np.ndarray | float = np.nan, t_first_s: float = -np.inf, view: HeadingView | None = None) -> np.ndarray:
+        """Append landmarks seen once (at ``t_first_s``). info (M, 3, 3) 1/m^2. Returns their ids (M,). ``view``:
+        the heading correction they were geotagged with, and from where (for :meth:`turn`)."""
         m = len(descriptors)
         self._grow(self._n + m)
         ids = np.arange(self._n, self._n + m)
@@ -338,6 +331,8 @@ class LandmarkMap:
         self.t_first_s[ids] = t_first_s
         self.source[ids] = 0
         self._n += m
+        if view is not None and np.isfinite(t_first_s):
+            self.recent_views.note(ids, info, t_first_s, view)
         return ids
 
     def demote(self, ids: np.ndarray) -> None:
@@ -347,14 +342,15 @@ class LandmarkMap:
 
     def observe(
         self, ids: np.ndarray, A_obs: np.ndarray, b_obs: np.ndarray, descriptors: np.ndarray, view_cos: np.ndarray, chi2: np.ndarray,
-        descriptor_range_m: np.ndarray | float = np.nan, t_s: float | None = None,
+        descriptor_range_m: np.ndarray | float = np.nan, t_s: float | None = None, view: HeadingView | None = None,
     ) -> None:
         """Fuse one observation into each landmark in ``ids`` (unique).
 
         The observation is in information form: ``A_obs`` (M, 3, 3) 1/m^2 and ``b_obs = A_obs @ point`` (M, 3);
         ``chi2`` (M,) is its squared Mahalanobis innovation, averaged into the landmark's consistency. The
         landmark keeps the descriptor of its most nadir view, and that view's ``descriptor_range_m``. ``t_s``: when
-        it was seen, for the journal (None: not journalled).
+        it was seen, for the journal (None: not journalled); ``view``: the heading correction the observation was
+        geotagged with, and from where (for :meth:`turn`; only landmarks of this flight keep it).
         """
         self._record(t_s, ids, self.OBSERVED)
         n_before = self.n_seen[ids].astype(np.float32)
@@ -371,6 +367,29 @@ class LandmarkMap:
         self.descriptors[ids[better]] = descriptors[better]
         self.view_cos[ids[better]] = view_cos[better]
         self.descriptor_range_m[ids[better]] = np.broadcast_to(descriptor_range_m, ids.shape)[better]
+        if view is not None and t_s is not None:
+            own = np.isfinite(self.t_first_s[ids]) & (self.recent_views.rows(ids) >= 0)  # every view of it since its first
+            self.recent_views.note(ids[own], A_obs[own], t_s, view)
+
+    def turn(self, heading_rad: float, from_rad: float, seen_since_s: float) -> np.ndarray:
+        """Geotag again, with the heading correction ``heading_rad``, the landmarks this flight has seen since
+        ``seen_since_s``, their views geotagged with ``from_rad`` or within a small step of it
+        (:func:`auxgps.core.retag.turned`); forget the views of older ones. Returns the ids turned. Not
+        journalled: :meth:`roll_back` puts a landmark's position and information back together, as the last
+        observation before the undo point left them, and forgets its views."""
+        views = self.recent_views
+        views.forget_before(seen_since_s)
+        ids = views.ids
+        if not len(ids):
+            return ids
+        info, p, sums = turned(views.sums, self.info_packed[ids].astype(float), self.p_ned_m[ids].astype(float), heading_rad,
+                               from_rad)
+        p_before = self.p_ned_m[ids].copy()
+        self.p_ned_m[ids] = p
+        self.info_packed[ids] = info
+        self.index.note_moved(ids, p_before, self.p_ned_m[ids])
+        views.sums = sums
+        return ids.copy()
 
     def count_visible(self, ids: np.ndarray, t_s: float | None = None) -> None:
         """Count one more frame (taken at ``t_s``, for the journal) in which these landmarks were predicted inside

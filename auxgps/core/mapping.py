@@ -17,6 +17,7 @@ from auxgps.core.camera import PinholeCamera
 from auxgps.core.features import Features, hamming, pairs_within
 from auxgps.core.geometry import intersect_rays_with_horizontal_plane
 from auxgps.core.landmarks import LandmarkMap
+from auxgps.core.retag import HeadingView
 from auxgps.core.nav import NavSample
 from auxgps.core.stopwatch import null_stopwatch
 
@@ -101,6 +102,8 @@ class Mapper:
                 with self.stopwatch("matching"):
                     matched_feat, matched_lm, chi2 = self._guided_match(features, cand, uv_lm, rays, c, sigma_px)
 
+        # What the views are geotagged with, for turning them again when the heading is better known.
+        view = HeadingView(nav.heading_offset_rad, c.copy()) if nav.heading_offset_rad is not None else None
         # Fuse matches as ray observations.
         if len(matched_feat):
             d = rays[matched_feat]
@@ -108,7 +111,7 @@ class Mapper:
             A = ray_information(d, self._sigma_perp(rng_m, sigma_px[matched_feat]))
             b = np.einsum("nij,j->ni", A, c)
             self.map.observe(matched_lm, A, b, features.descriptors[matched_feat], d[:, 2].astype(np.float16), chi2,
-                             rng_m / features.scale, nav.t_s)
+                             rng_m / features.scale, nav.t_s, view)
             ids_out[matched_feat] = matched_lm
 
         # Unmatched features become new landmarks on the ground plane, their height free within a few metres
@@ -122,7 +125,7 @@ class Mapper:
             A = ray_information(rays[new], self._sigma_perp(rng_m, sigma_px[new]))
             A[:, 2, 2] += 1.0 / cfg.initial_height_sigma_m**2
             ids_out[new] = self.map.add(features.descriptors[new], p0, A, rays[new, 2].astype(np.float16), rng_m / features.scale,
-                                        nav.t_s)
+                                        nav.t_s, view)
             n_added = len(new)
         return MappingResult(n, len(matched_feat), n_added, ids_out)
 

@@ -1,0 +1,188 @@
+"""Landmarks geotagged again when the heading is better known.
+
+A mapping frame puts each landmark's ray into the map turned by the heading correction the solver
+(:mod:`auxgps.core.heading`) had then. The first frames of a flight are mapped while it still knows little: its
+estimate moves by a degree in the first seconds. A landmark seen from a leg with its rays turned by different
+amounts is placed wrong across the leg, and at a wrong height too (a ray turned sideways looks like parallax), and
+the return leg, beside the way out, positions on it.
+
+So the map keeps, for the landmarks of this flight seen in the last ``heading.follow_s``, what is needed to turn
+each of their views again about the vertical through its camera: sums over the views ``i`` (ray information
+``A_i``, camera ``C_i = c_i + z_i e_down``, correction ``b_i``) that make the change of the landmark's information
+and information vector linear in the turns ``b_i - b`` (first order: the map is turned again in steps of a hundredth
+of a degree, as the estimate moves). Older landmarks keep where they are.
+
+Pure: arrays in, arrays out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from auxgps.core.geometry import pack_sym, solve_sym3, unpack_sym
+
+#: A small clockwise turn about down (north toward east), per radian: ``d(R v) = K v dtheta``.
+K = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+_E_DOWN = np.array([0.0, 0.0, 1.0])
+@dataclass(frozen=True)
+class HeadingView:
+    """The heading correction (rad, subtracted from the autopilot's heading) a mapping frame was geotagged with,
+    and where its camera was (NED, m)."""
+
+    heading_rad: float
+    camera_ned_m: np.ndarray
+
+
+class RecentViews:
+    """Per landmark seen within the last few seconds, the sums :func:`turned` needs, in rows reused as landmarks
+    age out (a map of a hundred thousand landmarks keeps rows for the few thousand in view lately).
+
+    Row layout (float64): ``sum b_i A_i`` (packed, 6), ``sum b_i A_i c_i``, ``sum A_i K c_i``,
+    ``sum b_i A_i K c_i``, ``sum z_i A_i e_down``, ``sum b_i z_i A_i e_down`` (3 each); ``c_i`` the camera's
+    north/east (down 0), ``z_i`` its down."""
+
+    WIDTH = 21
+
+    def __init__(self) -> None:
+        self._row_of = np.full(0, -1, np.int64)  # per landmark id: its row, -1 none
+        self.ids = np.zeros(0, np.int64)  # per row: its landmark
+        self.sums = np.zeros((0, self.WIDTH))
+        self.t_last_s = np.zeros(0)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self._row_of.nbytes + self.ids.nbytes + self.sums.nbytes + self.t_last_s.nbytes)
+
+    def clear(self) -> None:
+        self.__init__()
+
+    def rows(self, ids: np.ndarray) -> np.ndarray:
+        """The rows of ``ids``, -1 for those without one."""
+        ids = np.asarray(ids, np.int64)
+        out = np.full(len(ids), -1, np.int64)
+        known = ids < len(self._row_of)
+        out[known] = self._row_of[ids[known]]
+        return out
+
+    def note(self, ids: np.ndarray, A: np.ndarray, t_s: float, view: HeadingView) -> None:
+        """One view (at ``t_s``) of each landmark in ``ids`` (unique), with its ray information ``A`` (M, 3, 3)."""
+        ids = np.asarray(ids, np.int64)
+        if not len(ids):
+            return
+        rows = self.rows(ids)
+        new = rows < 0
+        if np.any(new):
+            if ids.max() >= len(self._row_of):
+                grown = np.full(max(int(ids.max()) + 1, int(1.5 * len(self._row_of))), -1, np.int64)
+                grown[: len(self._row_of)] = self._row_of
+                self._row_of = grown
+            first = len(self.ids)
+            rows[new] = np.arange(first, first + int(new.sum()))
+            self._row_of[ids[new]] = rows[new]
+            self.ids = np.concatenate([self.ids, ids[new]])
+            self.sums = np.concatenate([self.sums, np.zeros((int(new.sum()), self.WIDTH))])
+            self.t_last_s = np.concatenate([self.t_last_s, np.zeros(int(new.sum()))])
+        b = float(view.heading_rad)
+        C = np.asarray(view.camera_ned_m, float)
+        c = np.array([C[0], C[1], 0.0])
+        z = float(C[2])
+        Ac, AKc, Ae = A @ c, A @ (K @ c), A @ _E_DOWN
+        S = self.sums[rows]
+        S[:, 0:6] += b * pack_sym(A)
+        S[:, 6:9] += b * Ac
+        S[:, 9:12] += AKc
+        S[:, 12:15] += b * AKc
+        S[:, 15:18] += z * Ae
+        S[:, 18:21] += b * z * Ae
+        self.sums[rows] = S
+        self.t_last_s[rows] = t_s
+
+    def forget(self, ids: np.ndarray) -> None:
+        """Drop the rows of ``ids`` (their positions were put back by an undo: the sums no longer describe them)."""
+        rows = self.rows(ids)
+        self._keep(np.setdiff1d(np.arange(len(self.ids)), rows[rows >= 0]))
+
+    def forget_before(self, t_s: float) -> None:
+        """Drop the rows of landmarks last seen before ``t_s``."""
+        self._keep(np.flatnonzero(self.t_last_s >= t_s))
+
+    def _keep(self, rows: np.ndarray) -> None:
+        if len(rows) == len(self.ids):
+            return
+        self._row_of[self.ids] = -1
+        self.ids, self.sums, self.t_last_s = self.ids[rows], self.sums[rows], self.t_last_s[rows]
+        self._row_of[self.ids] = np.arange(len(self.ids))
+
+
+def _k_commutator(m: np.ndarray) -> np.ndarray:
+    """``K M - M K`` of symmetric ``M``, both packed (..., 6) (what a small turn adds to an information matrix)."""
+    m00, m01, m02, m11, m12 = m[:, 0], m[:, 1], m[:, 2], m[:, 3], m[:, 4]
+    return np.column_stack([-2.0 * m01, m00 - m11, -m12, 2.0 * m01, m02, np.zeros_like(m00)])
+
+
+def _k(v: np.ndarray) -> np.ndarray:
+    """``K v`` of vectors (..., 3)."""
+    return np.column_stack([-v[:, 1], v[:, 0], np.zeros(len(v))])
+
+
+def _turned_packed(a: np.ndarray, c: float, s: float) -> np.ndarray:
+    """``R A R^T`` of symmetric ``A``, packed (..., 6), ``R`` the turn about down with cosine ``c`` and sine ``s``."""
+    a00, a01, a02, a11, a12, a22 = a.T
+    cs = c * s
+    return np.column_stack([c * c * a00 - 2.0 * cs * a01 + s * s * a11, cs * (a00 - a11) + (c * c - s * s) * a01,
+                            c * a02 - s * a12, s * s * a00 + 2.0 * cs * a01 + c * c * a11, s * a02 + c * a12, a22])
+
+
+def _turned_vec(v: np.ndarray, c: float, s: float) -> np.ndarray:
+    """``R v`` of vectors (..., 3)."""
+    return np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]])
+
+
+def turned(sums: np.ndarray, info_packed: np.ndarray, p_ned_m: np.ndarray, heading_rad: float, from_rad: float
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Landmarks with information ``info_packed`` (M, 6) at ``p_ned_m`` (M, 3), every view of which is in ``sums``
+    (M, :attr:`RecentViews.WIDTH`), with each view's ray turned about the vertical through its camera by
+    ``b_i - heading_rad``: their new information (packed), positions and sums (every view now at ``heading_rad``).
+
+    The views share ``from_rad`` (the correction the map was last turned to) but for a small part each,
+    ``e_i = b_i - from_rad`` (the estimate moves by less than the turn step between turns): the common turn
+    ``D = from_rad - heading_rad`` is applied exactly (a rotation of the landmark's rays, so that a landmark seen
+    from one place, known well across its ray and hardly along it, keeps that shape), the ``e_i`` to first order.
+    The information may hold a height prior beside the rays: a turn about the vertical leaves it."""
+    b, beta = float(heading_rad), float(from_rad)
+    D = beta - b
+    cD, sD = float(np.cos(D)), float(np.sin(D))
+    S = sums
+    S1, S3, S4, S5, S6, S7 = S[:, 0:6], S[:, 6:9], S[:, 9:12], S[:, 12:15], S[:, 15:18], S[:, 18:21]
+    A = unpack_sym(info_packed)
+    G = np.einsum("nij,nj->ni", A, p_ned_m)  # sum A_i C_i
+    S2 = G - S6  # sum A_i c_i
+    # The small parts e_i, to first order: A_i -> A_i + e_i (K A_i - A_i K), and A_i C_i -> that times C_i.
+    eA = S1 - beta * info_packed  # sum e_i A_i, packed
+    eAC = (S3 - beta * S2) + (S7 - beta * S6)  # sum e_i A_i C_i
+    eAKc = S5 - beta * S4  # sum e_i A_i K c_i
+    A_e = info_packed + _k_commutator(eA)
+    G_e = G + _k(eAC) - eAKc
+    S4_e = S4 + _k(eAKc) + (S3 - beta * S2)  # - sum e_i A_i K K c_i = + sum e_i A_i c_i
+    S6_e = S6 + _k(S7 - beta * S6)
+    S2_e = G_e - S6_e
+    # The common turn D, exactly: A_i -> R A_i R^T, so sum A_i' C_i = R sum A_i R^T C_i, and R^T c = cos c - sin K c.
+    X = S2_e * cD - S4_e * sD + S6_e
+    P_new = _turned_vec(solve_sym3(A_e, X), cD, sD)
+    A_new = _turned_packed(A_e, cD, sD)
+    S2_new = _turned_vec(S2_e * cD - S4_e * sD, cD, sD)
+    S4_new = _turned_vec(S4_e * cD + S2_e * sD, cD, sD)
+    S6_new = _turned_vec(S6_e, cD, sD)
+    out = np.empty_like(S)
+    out[:, 0:6] = b * A_new
+    out[:, 6:9] = b * S2_new
+    out[:, 9:12] = S4_new
+    out[:, 12:15] = b * S4_new
+    out[:, 15:18] = S6_new
+    out[:, 18:21] = b * S6_new
+    return A_new, P_new, out
