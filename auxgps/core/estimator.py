@@ -654,7 +654,7 @@ class Estimator:
                 self.landmarks.turn(b, self._map_turned_to, t_s - cfg.follow_s)
                 self._map_turned_to = b
             else:
-                self.landmarks.recent_views.forget_before(t_s - cfg.follow_s)
+                self.landmarks.recent_views.forget_before(t_s - cfg.follow_s, lazily=True)
 
     def _heading_from_view(self, job: FrameJob, work: FrameWork) -> None:
         """Give the heading tracker a mapping frame's view: each landmark the frame fed, its ray put on the ground

@@ -37,26 +37,41 @@ class HeadingView:
 
 class RecentViews:
     """Per landmark seen within the last few seconds, the sums :func:`turned` needs, in rows reused as landmarks
-    age out (a map of a hundred thousand landmarks keeps rows for the few thousand in view lately).
+    age out (a map of a hundred thousand landmarks keeps rows for the ten thousand in view lately). Rows are
+    appended into spare capacity and dropped in bulk, so a frame pays for its own views, not for the table.
 
     Row layout (float64): ``sum b_i A_i`` (packed, 6), ``sum b_i A_i c_i``, ``sum A_i K c_i``,
     ``sum b_i A_i K c_i``, ``sum z_i A_i e_down``, ``sum b_i z_i A_i e_down`` (3 each); ``c_i`` the camera's
     north/east (down 0), ``z_i`` its down."""
 
     WIDTH = 21
+    GROWTH = 1.5
 
     def __init__(self) -> None:
         self._row_of = np.full(0, -1, np.int64)  # per landmark id: its row, -1 none
-        self.ids = np.zeros(0, np.int64)  # per row: its landmark
-        self.sums = np.zeros((0, self.WIDTH))
-        self.t_last_s = np.zeros(0)
+        self._n = 0
+        self._ids = np.zeros(0, np.int64)  # per row: its landmark
+        self._sums = np.zeros((0, self.WIDTH))
+        self._t_last_s = np.zeros(0)
 
     def __len__(self) -> int:
-        return len(self.ids)
+        return self._n
+
+    @property
+    def ids(self) -> np.ndarray:
+        return self._ids[: self._n]
+
+    @property
+    def sums(self) -> np.ndarray:
+        return self._sums[: self._n]
+
+    @sums.setter
+    def sums(self, value: np.ndarray) -> None:
+        self._sums[: self._n] = value
 
     @property
     def nbytes(self) -> int:
-        return int(self._row_of.nbytes + self.ids.nbytes + self.sums.nbytes + self.t_last_s.nbytes)
+        return int(self._row_of.nbytes + self._ids.nbytes + self._sums.nbytes + self._t_last_s.nbytes)
 
     def clear(self) -> None:
         self.__init__()
@@ -69,6 +84,25 @@ class RecentViews:
         out[known] = self._row_of[ids[known]]
         return out
 
+    def _add_rows(self, ids: np.ndarray) -> np.ndarray:
+        """New zero rows for ``ids`` (none of which has one); their row numbers."""
+        m, n = len(ids), self._n
+        if int(ids.max()) >= len(self._row_of):
+            grown = np.full(max(int(ids.max()) + 1, int(self.GROWTH * len(self._row_of))), -1, np.int64)
+            grown[: len(self._row_of)] = self._row_of
+            self._row_of = grown
+        if n + m > len(self._ids):
+            cap = max(n + m, int(self.GROWTH * len(self._ids)) + 64)
+            self._ids = np.concatenate([self._ids[:n], np.zeros(cap - n, np.int64)])
+            self._sums = np.concatenate([self._sums[:n], np.zeros((cap - n, self.WIDTH))])
+            self._t_last_s = np.concatenate([self._t_last_s[:n], np.zeros(cap - n)])
+        rows = np.arange(n, n + m)
+        self._ids[rows] = ids
+        self._sums[rows] = 0.0
+        self._row_of[ids] = rows
+        self._n = n + m
+        return rows
+
     def note(self, ids: np.ndarray, A: np.ndarray, t_s: float, view: HeadingView) -> None:
         """One view (at ``t_s``) of each landmark in ``ids`` (unique), with its ray information ``A`` (M, 3, 3)."""
         ids = np.asarray(ids, np.int64)
@@ -77,46 +111,45 @@ class RecentViews:
         rows = self.rows(ids)
         new = rows < 0
         if np.any(new):
-            if ids.max() >= len(self._row_of):
-                grown = np.full(max(int(ids.max()) + 1, int(1.5 * len(self._row_of))), -1, np.int64)
-                grown[: len(self._row_of)] = self._row_of
-                self._row_of = grown
-            first = len(self.ids)
-            rows[new] = np.arange(first, first + int(new.sum()))
-            self._row_of[ids[new]] = rows[new]
-            self.ids = np.concatenate([self.ids, ids[new]])
-            self.sums = np.concatenate([self.sums, np.zeros((int(new.sum()), self.WIDTH))])
-            self.t_last_s = np.concatenate([self.t_last_s, np.zeros(int(new.sum()))])
+            rows[new] = self._add_rows(ids[new])
         b = float(view.heading_rad)
         C = np.asarray(view.camera_ned_m, float)
         c = np.array([C[0], C[1], 0.0])
         z = float(C[2])
         Ac, AKc, Ae = A @ c, A @ (K @ c), A @ _E_DOWN
-        S = self.sums[rows]
+        S = self._sums[rows]
         S[:, 0:6] += b * pack_sym(A)
         S[:, 6:9] += b * Ac
         S[:, 9:12] += AKc
         S[:, 12:15] += b * AKc
         S[:, 15:18] += z * Ae
         S[:, 18:21] += b * z * Ae
-        self.sums[rows] = S
-        self.t_last_s[rows] = t_s
+        self._sums[rows] = S
+        self._t_last_s[rows] = t_s
 
     def forget(self, ids: np.ndarray) -> None:
         """Drop the rows of ``ids`` (their positions were put back by an undo: the sums no longer describe them)."""
         rows = self.rows(ids)
-        self._keep(np.setdiff1d(np.arange(len(self.ids)), rows[rows >= 0]))
+        dead = np.zeros(self._n, bool)
+        dead[rows[rows >= 0]] = True
+        self._keep(np.flatnonzero(~dead))
 
-    def forget_before(self, t_s: float) -> None:
-        """Drop the rows of landmarks last seen before ``t_s``."""
-        self._keep(np.flatnonzero(self.t_last_s >= t_s))
+    def forget_before(self, t_s: float, lazily: bool = False) -> None:
+        """Drop the rows of landmarks last seen before ``t_s``; ``lazily``: only once they are a quarter of the
+        rows (a frame need not copy the table for the few that aged since the last)."""
+        old = self._t_last_s[: self._n] < t_s
+        n_old = int(old.sum())
+        if n_old and (not lazily or n_old >= max(256, self._n // 4)):
+            self._keep(np.flatnonzero(~old))
 
     def _keep(self, rows: np.ndarray) -> None:
-        if len(rows) == len(self.ids):
+        if len(rows) == self._n:
             return
         self._row_of[self.ids] = -1
-        self.ids, self.sums, self.t_last_s = self.ids[rows], self.sums[rows], self.t_last_s[rows]
-        self._row_of[self.ids] = np.arange(len(self.ids))
+        k = len(rows)
+        self._ids[:k], self._sums[:k], self._t_last_s[:k] = self._ids[rows], self._sums[rows], self._t_last_s[rows]
+        self._n = k
+        self._row_of[self.ids] = np.arange(k)
 
 
 def _k_commutator(m: np.ndarray) -> np.ndarray:
