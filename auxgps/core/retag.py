@@ -8,9 +8,10 @@ the return leg, beside the way out, positions on it.
 
 So the map keeps, for the landmarks of this flight seen in the last ``heading.follow_s``, what is needed to turn
 each of their views again about the vertical through its camera: sums over the views ``i`` (ray information
-``A_i``, camera ``C_i = c_i + z_i e_down``, correction ``b_i``) that make the change of the landmark's information
-and information vector linear in the turns ``b_i - b`` (first order: the map is turned again in steps of a hundredth
-of a degree, as the estimate moves). Older landmarks keep where they are.
+``A_i``, camera ``C_i = c_i + z_i e_down``, correction ``b_i``) from which the landmark's information and
+information vector with every ray turned are formed. The turn all views share (the estimate's move since the map
+was last turned) is applied exactly; what differs from view to view (under the turn step, ``heading.turn_step_deg``)
+to first order. Older landmarks keep where they are.
 
 Pure: arrays in, arrays out.
 """
@@ -26,6 +27,8 @@ from auxgps.core.geometry import pack_sym, solve_sym3, unpack_sym
 #: A small clockwise turn about down (north toward east), per radian: ``d(R v) = K v dtheta``.
 K = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
 _E_DOWN = np.array([0.0, 0.0, 1.0])
+
+
 @dataclass(frozen=True)
 class HeadingView:
     """The heading correction (rad, subtracted from the autopilot's heading) a mapping frame was geotagged with,
