@@ -226,12 +226,14 @@ class HeadingConfig:
     decorrelation_s: Positive = 2.0
     gate_chi2: Positive = 9.0  # 3 sigma on the one degree of freedom
     reset_after: Annotated[int, Field(ge=2)] = 10  # refused in a row: the error has jumped, the estimate reopens
-    # The landmarks seen within follow_s are geotagged again with the error as solved now, each time it has moved
-    # turn_step_deg (LandmarkMap.turn): the first ones are mapped while the solver knows little. Short, because all
-    # of a landmark's views are turned to the one estimate of now: a compass-fed heading can move a degree in a
-    # minute (config/sim/heading_drift.yaml: 10 s gave fused 0.64 m RMS there, 30 s 1.49 m; 0.19 and 0.19 m without
-    # the drift). 0: never.
-    follow_s: NonNegative = 10.0
+    # The landmarks seen lately are geotagged again with the error as solved now, each time it has moved
+    # turn_step_deg (LandmarkMap.turn): the first ones are mapped while the solver knows little. Lately: within
+    # follow_s, and within follow_memory of the tracker's memory clock (HeadingTracker.at: a smoother's reach back,
+    # long while the tracker is unsure, a few seconds once it knows the error, which may have moved as much since).
+    # Turned to the one estimate of now, a landmark seen over seconds loses the average of its views' estimates.
+    # 0: never.
+    follow_s: NonNegative = 30.0
+    follow_memory: Positive = 1.0
     turn_step_deg: Positive = 0.02
 
 

@@ -11,7 +11,7 @@ from auxgps.config import HeadingConfig, PipelineConfig
 from auxgps.core.camera import camera_from_config
 from auxgps.core.features import Features
 from auxgps.core.geometry import R_body_cam_from_mount, R_ned_body_from_euler
-from auxgps.core.heading import HeadingTracker, MotionView, ground_points_ne, heading_from_motion
+from auxgps.core.heading import HeadingEstimate, HeadingTracker, MotionView, ground_points_ne, heading_from_motion
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.localise import Fix, Localiser, PositionPrior
 from auxgps.core.mapping import Mapper
@@ -200,7 +200,8 @@ def _map_north_while_solving(scene, pipeline, b_true_rad, corrections_rad, turn)
             turned_to = b
         c = np.array([2.0 * k, 0.0])
         R_used = R_ned_body_from_euler(0.0, 0.0, b_true_rad - b)
-        mapper.process(scene.features(c, 0.0), NavSample(0.25 * k, np.array([c[0], c[1], -ALT_M]), ALT_M, R_used, b if turn else None))
+        heading = HeadingEstimate(0.25 * k, b, 0.0) if turn else None
+        mapper.process(scene.features(c, 0.0), NavSample(0.25 * k, np.array([c[0], c[1], -ALT_M]), ALT_M, R_used, heading))
     return lm
 
 

@@ -556,7 +556,7 @@ class Estimator:
         if job.mapping:
             with sw("mapping"):
                 mapped = self.mapper.process(feats, NavSample(job.frame.t_s, job.p_gps_ned_m, job.alt_above_origin_m, job.R_ned_body,
-                                                              job.heading.offset_rad if job.heading is not None else None))
+                                                              job.heading))
         return FrameWork(job, feats, mapped, located, note)
 
     def finish_frame(self, work: FrameWork) -> FrameResult:
@@ -640,21 +640,25 @@ class Estimator:
                 f"{fusion.reinit_min_span_s:g} s")
 
     def _turn_map(self, t_s: float, b_mapped: float) -> None:
-        """Geotag the landmarks mapped in the last ``heading.follow_s`` again with the heading error as solved now,
-        once it has moved ``heading.turn_step_deg`` since the last time: the first landmarks of a flight are mapped
-        while the solver still knows little, and a map turned by what it then believed stays turned for the return."""
+        """Geotag the landmarks mapped lately again with the heading error as solved now, once it has moved
+        ``heading.turn_step_deg`` since the last time: the first landmarks of a flight are mapped while the solver
+        still knows little, and a map turned by what it then believed stays turned for the return. Lately: within
+        ``heading.follow_s`` and ``heading.follow_memory`` of the tracker's memory clock (what a smoother would
+        still correct: long while the tracker was unsure, a few seconds once it knows the error)."""
         cfg = self.cfg.heading
         if self.heading is None:
             return
-        b = self.heading.at(t_s).offset_rad
+        now = self.heading.at(t_s)
+        b = now.offset_rad
         if self._map_turned_to is None:
             self._map_turned_to = b_mapped  # what the views so far were geotagged with
+        since = (t_s - cfg.follow_s, now.memory - cfg.follow_memory)
         with self.stopwatch("mapping"):
             if cfg.follow_s > 0 and abs(b - self._map_turned_to) >= np.deg2rad(cfg.turn_step_deg):
-                self.landmarks.turn(b, self._map_turned_to, t_s - cfg.follow_s)
+                self.landmarks.turn(b, self._map_turned_to, *since)
                 self._map_turned_to = b
             else:
-                self.landmarks.recent_views.forget_before(t_s - cfg.follow_s, lazily=True)
+                self.landmarks.recent_views.forget_before(*since, lazily=True)
 
     def _heading_from_view(self, job: FrameJob, work: FrameWork) -> None:
         """Give the heading tracker a mapping frame's view: each landmark the frame fed, its ray put on the ground

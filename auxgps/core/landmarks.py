@@ -371,14 +371,15 @@ class LandmarkMap:
             own = np.isfinite(self.t_first_s[ids]) & (self.recent_views.rows(ids) >= 0)  # every view of it since its first
             self.recent_views.note(ids[own], A_obs[own], t_s, view)
 
-    def turn(self, heading_rad: float, from_rad: float, seen_since_s: float) -> np.ndarray:
+    def turn(self, heading_rad: float, from_rad: float, seen_since_s: float, memory_since: float = -np.inf) -> np.ndarray:
         """Geotag again, with the heading correction ``heading_rad``, the landmarks this flight has seen since
-        ``seen_since_s``, their views geotagged with ``from_rad`` or within a small step of it
+        ``seen_since_s`` (and since the heading tracker's memory clock read ``memory_since``), their views geotagged
+        with ``from_rad`` or within a small step of it
         (:func:`auxgps.core.retag.turned`); forget the views of older ones. Returns the ids turned. Not
         journalled: :meth:`roll_back` puts a landmark's position and information back together, as the last
         observation before the undo point left them, and forgets its views."""
         views = self.recent_views
-        views.forget_before(seen_since_s)
+        views.forget_before(seen_since_s, memory_since)
         ids = views.ids
         if not len(ids):
             return ids

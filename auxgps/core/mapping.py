@@ -103,7 +103,7 @@ class Mapper:
                     matched_feat, matched_lm, chi2 = self._guided_match(features, cand, uv_lm, rays, c, sigma_px)
 
         # What the views are geotagged with, for turning them again when the heading is better known.
-        view = HeadingView(nav.heading_offset_rad, c.copy()) if nav.heading_offset_rad is not None else None
+        view = HeadingView(nav.heading.offset_rad, c.copy(), nav.heading.memory) if nav.heading is not None else None
         # Fuse matches as ray observations.
         if len(matched_feat):
             d = rays[matched_feat]

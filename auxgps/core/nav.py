@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from auxgps.core.camera import CameraPose
+from auxgps.core.heading import HeadingEstimate
 
 
 @dataclass(frozen=True)
@@ -14,15 +15,15 @@ class NavSample:
     """The autopilot's telemetry at a frame's capture time.
 
     t_s : s; p_gps_ned_m : (3,) m or None without GPS; alt_above_origin_m : height above the local origin (barometric), m;
-    R_ned_body : (3, 3) attitude; heading_offset_rad : the autopilot's heading error taken out of it (None: not
-    solved, the heading as it came).
+    R_ned_body : (3, 3) attitude; heading : the autopilot's heading error taken out of it (None: not solved, the
+    heading as it came).
     """
 
     t_s: float
     p_gps_ned_m: np.ndarray | None
     alt_above_origin_m: float
     R_ned_body: np.ndarray
-    heading_offset_rad: float | None = None
+    heading: HeadingEstimate | None = None
 
     def camera_pose(self, R_body_cam: np.ndarray) -> CameraPose:
         """Camera pose from GPS north/east and barometric height (the camera at the body origin)."""

@@ -36,6 +36,7 @@ class HeadingView:
 
     heading_rad: float
     camera_ned_m: np.ndarray
+    memory: float = 0.0  # the heading tracker's memory clock then (HeadingEstimate.memory)
 
 
 class RecentViews:
@@ -56,6 +57,7 @@ class RecentViews:
         self._ids = np.zeros(0, np.int64)  # per row: its landmark
         self._sums = np.zeros((0, self.WIDTH))
         self._t_last_s = np.zeros(0)
+        self._memory_last = np.zeros(0)
 
     def __len__(self) -> int:
         return self._n
@@ -74,7 +76,7 @@ class RecentViews:
 
     @property
     def nbytes(self) -> int:
-        return int(self._row_of.nbytes + self._ids.nbytes + self._sums.nbytes + self._t_last_s.nbytes)
+        return int(self._row_of.nbytes + self._ids.nbytes + self._sums.nbytes + self._t_last_s.nbytes + self._memory_last.nbytes)
 
     def clear(self) -> None:
         self.__init__()
@@ -99,6 +101,7 @@ class RecentViews:
             self._ids = np.concatenate([self._ids[:n], np.zeros(cap - n, np.int64)])
             self._sums = np.concatenate([self._sums[:n], np.zeros((cap - n, self.WIDTH))])
             self._t_last_s = np.concatenate([self._t_last_s[:n], np.zeros(cap - n)])
+            self._memory_last = np.concatenate([self._memory_last[:n], np.zeros(cap - n)])
         rows = np.arange(n, n + m)
         self._ids[rows] = ids
         self._sums[rows] = 0.0
@@ -129,6 +132,7 @@ class RecentViews:
         S[:, 18:21] += b * z * Ae
         self._sums[rows] = S
         self._t_last_s[rows] = t_s
+        self._memory_last[rows] = view.memory
 
     def forget(self, ids: np.ndarray) -> None:
         """Drop the rows of ``ids`` (their positions were put back by an undo: the sums no longer describe them)."""
@@ -137,10 +141,11 @@ class RecentViews:
         dead[rows[rows >= 0]] = True
         self._keep(np.flatnonzero(~dead))
 
-    def forget_before(self, t_s: float, lazily: bool = False) -> None:
-        """Drop the rows of landmarks last seen before ``t_s``; ``lazily``: only once they are a quarter of the
-        rows (a frame need not copy the table for the few that aged since the last)."""
-        old = self._t_last_s[: self._n] < t_s
+    def forget_before(self, t_s: float, memory: float = -np.inf, lazily: bool = False) -> None:
+        """Drop the rows of landmarks last seen before ``t_s``, or before the memory clock read ``memory``;
+        ``lazily``: only once they are a quarter of the rows (a frame need not copy the table for the few that aged
+        since the last)."""
+        old = (self._t_last_s[: self._n] < t_s) | (self._memory_last[: self._n] < memory)
         n_old = int(old.sum())
         if n_old and (not lazily or n_old >= max(256, self._n // 4)):
             self._keep(np.flatnonzero(~old))
@@ -150,7 +155,8 @@ class RecentViews:
             return
         self._row_of[self.ids] = -1
         k = len(rows)
-        self._ids[:k], self._sums[:k], self._t_last_s[:k] = self._ids[rows], self._sums[rows], self._t_last_s[rows]
+        self._ids[:k], self._sums[:k] = self._ids[rows], self._sums[rows]
+        self._t_last_s[:k], self._memory_last[:k] = self._t_last_s[rows], self._memory_last[rows]
         self._n = k
         self._row_of[self.ids] = np.arange(k)
 
