@@ -226,13 +226,15 @@ class HeadingConfig:
     decorrelation_s: Positive = 2.0
     gate_chi2: Positive = 9.0  # 3 sigma on the one degree of freedom
     reset_after: Annotated[int, Field(ge=2)] = 10  # refused in a row: the error has jumped, the estimate reopens
-    # The landmarks seen lately are geotagged again with the error as solved now, each time it has moved
+    # The landmarks seen lately can be geotagged again with the error as solved now, each time it has moved
     # turn_step_deg (LandmarkMap.turn): the first ones are mapped while the solver knows little. Lately: within
     # follow_s, and within follow_memory of the tracker's memory clock (HeadingTracker.at: a smoother's reach back,
-    # long while the tracker is unsure, a few seconds once it knows the error, which may have moved as much since).
-    # Turned to the one estimate of now, a landmark seen over seconds loses the average of its views' estimates.
-    # 0: never.
-    follow_s: NonNegative = 30.0
+    # long while the tracker is unsure, a few seconds once it knows the error). Off (follow_s 0) by default: over
+    # Seneca it helps where the heading is exact (the emulator: fused 0.237 -> 0.19 m RMS at 40 m) and hurts where it
+    # is not (a SITL flight replayed: fixes 0.226 -> 0.303 m RMS; config/sim/heading_drift.yaml: less honest), since
+    # every view of a landmark is turned to the one estimate of now and loses the average of its views' estimates.
+    # config/pipeline/map_follows_heading.yaml turns it on. docs/missions.md.
+    follow_s: NonNegative = 0.0
     follow_memory: Positive = 1.0
     turn_step_deg: Positive = 0.02
 

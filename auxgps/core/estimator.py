@@ -555,8 +555,9 @@ class Estimator:
                     located = on_prior
         if job.mapping:
             with sw("mapping"):
+                retag = self.cfg.heading.follow_s > 0  # keep what turning the views again needs
                 mapped = self.mapper.process(feats, NavSample(job.frame.t_s, job.p_gps_ned_m, job.alt_above_origin_m, job.R_ned_body,
-                                                              job.heading))
+                                                              job.heading if retag else None))
         return FrameWork(job, feats, mapped, located, note)
 
     def finish_frame(self, work: FrameWork) -> FrameResult:
@@ -646,7 +647,7 @@ class Estimator:
         ``heading.follow_s`` and ``heading.follow_memory`` of the tracker's memory clock (what a smoother would
         still correct: long while the tracker was unsure, a few seconds once it knows the error)."""
         cfg = self.cfg.heading
-        if self.heading is None:
+        if self.heading is None or cfg.follow_s <= 0:
             return
         now = self.heading.at(t_s)
         b = now.offset_rad
@@ -654,7 +655,7 @@ class Estimator:
             self._map_turned_to = b_mapped  # what the views so far were geotagged with
         since = (t_s - cfg.follow_s, now.memory - cfg.follow_memory)
         with self.stopwatch("mapping"):
-            if cfg.follow_s > 0 and abs(b - self._map_turned_to) >= np.deg2rad(cfg.turn_step_deg):
+            if abs(b - self._map_turned_to) >= np.deg2rad(cfg.turn_step_deg):
                 self.landmarks.turn(b, self._map_turned_to, *since)
                 self._map_turned_to = b
             else:
