@@ -374,9 +374,8 @@ class LandmarkMap:
     def turn(self, heading_rad: float, from_rad: float, seen_since_s: float, memory_since: float = -np.inf) -> np.ndarray:
         """Geotag again, with the heading correction ``heading_rad``, the landmarks this flight has seen since
         ``seen_since_s`` (and since the heading tracker's memory clock read ``memory_since``), their views geotagged
-        with ``from_rad`` or within a small step of it
-        (:func:`auxgps.core.retag.turned`); forget the views of older ones. Returns the ids turned. Not
-        journalled: :meth:`roll_back` puts a landmark's position and information back together, as the last
+        with ``from_rad`` or within a small step of it (:func:`auxgps.core.retag.turned`); forget the views of
+        older ones. Returns the ids turned. Not journalled: :meth:`roll_back` puts a landmark's position and information back together, as the last
         observation before the undo point left them, and forgets its views."""
         views = self.recent_views
         views.forget_before(seen_since_s, memory_since)

@@ -11,7 +11,8 @@ each of their views again about the vertical through its camera: sums over the v
 ``A_i``, camera ``C_i = c_i + z_i e_down``, correction ``b_i``) from which the landmark's information and
 information vector with every ray turned are formed. The turn all views share (the estimate's move since the map
 was last turned) is applied exactly; what differs from view to view (under the turn step, ``heading.turn_step_deg``)
-to first order. Older landmarks keep where they are.
+to first order. Older landmarks keep where they are. Off by default (``heading.follow_s: 0``): on a real SITL flight it
+cost the fixes more than it gave (docs/missions.md, "The map turned as the solver learns").
 
 Pure: arrays in, arrays out.
 """

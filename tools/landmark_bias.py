@@ -1,0 +1,62 @@
+#!/usr/bin/env python3
+"""Where a mission's map is off, and which way: the mean error (estimate less truth, north, east, down) of the
+landmarks positioning can use, near each of the mission's waypoints, after an `auxgps eval --mission` run.
+
+    .venv/bin/python tools/landmark_bias.py --world config/worlds/seneca.yaml \\
+        --mission config/missions/seneca_out_and_back.waypoints --alt-m 40 --gps-lost-at-waypoint 3 --seed 1 \\
+        [--config PIPELINE.yaml] [--radius-m 25]
+
+A shared offset over a region (not the spread of single landmarks) is what moves every fix made there alike.
+"""
+import argparse
+
+import numpy as np
+
+from auxgps.config import PipelineConfig, load_pipeline_config
+from auxgps.evaluation import scenario as S
+from auxgps.io.mission import load_mission
+from auxgps.sim.flight import SimConfig, mission_waypoints_ned
+from auxgps.sim.world import load_world
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--world", required=True)
+    ap.add_argument("--mission", required=True)
+    ap.add_argument("--alt-m", type=float, default=None)
+    ap.add_argument("--speed-m-s", type=float, default=8.0)
+    ap.add_argument("--gps-lost-at-waypoint", type=int, required=True)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--fps", type=float, default=10.0)
+    ap.add_argument("--config", default=None)
+    ap.add_argument("--radius-m", type=float, default=25.0)
+    a = ap.parse_args()
+    cfg = load_pipeline_config(a.config) if a.config else PipelineConfig()
+    kept = {}
+    errors = S._MapTruth.errors
+
+    def keep(self, est, pipeline):
+        kept["est"], kept["truth"] = est, self
+        return errors(self, est, pipeline)
+
+    S._MapTruth.errors = keep
+    world, mission = load_world(a.world), load_mission(a.mission)
+    S.run_mission(world, mission, a.alt_m, a.speed_m_s, a.gps_lost_at_waypoint, a.fps, a.seed, cfg, SimConfig())
+    est, truth = kept["est"], kept["truth"]
+    lm, m = est.landmarks, cfg.mapping
+    seen = np.flatnonzero((lm.n_seen[: len(lm)] >= m.min_seen) & (lm.source[: len(lm)] == 0))
+    used = seen[lm.usable(seen, m.min_seen, m.max_mean_chi2, m.min_found_ratio)]
+    p = lm.p_ned_m[used].astype(float)
+    err = p - np.array([np.median(truth.truths_of[int(j)], axis=0) for j in used])
+    path_ned, _ = mission_waypoints_ned(mission, world.frame, a.alt_m)
+    print(f"{len(used)} usable landmarks; mean error within {a.radius_m:g} m of each waypoint (m):")
+    for k, w in enumerate(path_ned):
+        near = np.linalg.norm(p[:, :2] - w[:2], axis=1) < a.radius_m
+        if near.any():
+            e = err[near]
+            print(f"  path point {k}: at N {w[0]:7.1f} E {w[1]:7.1f}: {near.sum():5d} landmarks, mean N {e[:, 0].mean():+.3f} "
+                  f"E {e[:, 1].mean():+.3f} D {e[:, 2].mean():+.3f}, median horizontal {np.median(np.linalg.norm(e[:, :2], axis=1)):.3f}")
+
+
+if __name__ == "__main__":
+    main()
