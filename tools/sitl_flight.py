@@ -6,7 +6,8 @@
 Starts SITL in a scratch folder (its defaults file beside the binary, plus config/ardupilot/auxgps-gps2.parm),
 connects a ground-station script on SERIAL0 (TCP 5760) and `auxgps run` on SERIAL1 (TCP 5762) with the world
 rendered at SIM_STATE's truth. The script arms in GUIDED, takes off to 15 m, flies the thesis' survey over the
-world (a 20 m x 20 m lawnmower, north-south legs 2 m apart, at 1 m/s), disables GPS1 (SIM_GPS1_ENABLE = 0) after
+world (a 20 m x 20 m lawnmower, north-south legs 2 m apart, at 1 m/s; each leg ends when the autopilot's own
+position, GLOBAL_POSITION_INT, is within 0.7 m of its end), disables GPS1 (SIM_GPS1_ENABLE = 0) after
 the third leg, finishes the survey on GPS2 (more than 3 minutes), switches to RTL and waits for the landing.
 Prints one JSON line: landing_error_m (true distance from home), denied_s, the autopilot's horizontal error after
 the failure (rms, max), and whether GPS2 carried a 3D fix; writes result.json, the truth track (truth.csv) and
@@ -339,8 +340,11 @@ def fly(gs: GroundStation) -> dict:
             gs.pump(0.5)
             if failed_at:
                 sample_after_failure(gs, errors, gps2_fixes)
-            tr = gs.truth()
-            if tr and math.dist(tr, (n, e)) < 0.7:
+            # The autopilot's own position says the leg is done, as WP_RADIUS does in AUTO (and the emulator's
+            # guide): a vehicle on auxgps that waited for the truth to come within 0.7 m hovered on, over bare
+            # ground, until the leg timed out.
+            es = gs.estimate()
+            if es and math.dist(es, (n, e)) < 0.7:
                 break
         if i == FAIL_AFTER_WAYPOINT:
             failed_at = fail_gps1(gs)
