@@ -202,6 +202,7 @@ class Companion:
         if opts.record_dir:
             self.recorder = Recorder(opts.record_dir, options=asdict(opts), pipeline=asdict(cfg), start_map=start_map)
         self._decoder = Decoder()
+        self._reboots_said = 0
         self._lock = threading.Lock()
         self._truth: Truth | None = None
         self._stop = threading.Event()
@@ -231,6 +232,12 @@ class Companion:
             if self.primary is not None and msg.get_type() == "PARAM_VALUE":
                 self.primary.on_param_value(msg)
             rec = self._decoder(msg, arrival_s)
+            rebooted = self._decoder.clock.last_reboot_s if self._decoder.clock.reboots != self._reboots_said else None
+            self._reboots_said = self._decoder.clock.reboots
+            if rebooted is not None:
+                self.link.request_streams()  # forgotten over a restart, whatever its SRn_ rates give instead
+                self._event(arrival_s, f"autopilot rebooted: its boot clock went back from {rebooted[0]:.1f} s to "
+                            f"{rebooted[1]:.1f} s; stamps follow the new clock, message rates asked for again")
             if rec is None:
                 return
             if isinstance(rec, Truth):

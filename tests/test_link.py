@@ -111,3 +111,45 @@ def test_a_message_without_a_stamp_read_late_keeps_the_time_it_was_sent():
     assert clock.unstamped(sent_s + 0.003) == pytest.approx(sent_s + 0.003)
     clock.to_local(11_000, 501.0 + 0.4)  # the next IMU sample, read 0.4 s late
     assert clock.unstamped(501.0 + 0.41) == pytest.approx(501.0 + 0.025, abs=0.005)
+
+
+def test_message_rates_are_asked_for_again_when_the_heartbeat_comes_without_attitude():
+    """An autopilot that restarted forgets the rates it was asked for (a copter's SRn_ rates are all 0: HEARTBEAT
+    alone). While ATTITUDE comes, the rates are asked for once; once it has been missing for over 1.5 s, at each
+    HEARTBEAT over 1.5 s after the last asking, until it is back."""
+    from auxgps.io.link import STREAMS_SILENT_S, MavLink
+
+    sent = []
+
+    class FakeConn:
+        mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
+
+    link = MavLink("tcp:127.0.0.1:1", lambda msg, t: None)
+    link._conn = FakeConn()
+    FakeConn.mav.send = lambda m: sent.append(m)
+    heartbeat = roundtrip(M.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0))
+    attitude = roundtrip(M.attitude_encode(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+
+    def asked(t0, t1):
+        """The times in [t0, t1) at which the rates were asked for, fed a HEARTBEAT a second and ATTITUDE at 50 Hz
+        while ``streaming`` says so."""
+        times = []
+        for t in np.arange(t0, t1, 0.02):
+            n = link.stream_requests
+            if abs(t - round(t)) < 1e-9:
+                link._handle(heartbeat, float(t))
+            if streaming(t):
+                link._handle(attitude, float(t))
+            if link.stream_requests > n:
+                times.append(round(float(t), 2))
+        return times
+
+    def streaming(t):
+        return t < 10.0 or t >= 14.0  # the autopilot restarts at 10 s; asked again, it streams from 14 s
+
+    assert asked(0.0, 10.0) == [0.0]  # the first HEARTBEAT
+    requests = [m for m in sent if m.get_type() == "COMMAND_LONG" and m.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL]
+    assert {int(m.param1) for m in requests} >= {mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_SCALED_IMU}
+    assert STREAMS_SILENT_S == 1.5
+    assert asked(10.0, 20.0) == [12.0, 14.0]  # 2 s after the last ATTITUDE; again 2 s later; then it is back
+    assert link.stream_requests == 3

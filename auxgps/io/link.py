@@ -37,6 +37,7 @@ STREAMS_HZ = {
     mav.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
     mav.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
 }
+STREAMS_SILENT_S = 1.5  # no ATTITUDE for this long, the autopilot's HEARTBEAT coming: ask for the rates again
 SIM_STREAMS_HZ = {mav.MAVLINK_MSG_ID_SIMSTATE: 20.0, mav.MAVLINK_MSG_ID_SIM_STATE: 20.0}  # raised to a simulated camera's rate
 
 
@@ -65,6 +66,7 @@ class BootClock:
         self._recent: deque = deque()  # (arrival_s, offset_s), offsets increasing from the left
         self._newest_boot_ms = -np.inf
         self.reboots = 0  # times the boot clock went back by more than a second: the autopilot restarted
+        self.last_reboot_s: tuple[float, float] | None = None  # (boot time before, boot time after) the last one
 
     def to_local(self, time_boot_ms: int, arrival_s: float) -> float:
         if time_boot_ms < self._newest_boot_ms - 1000:
@@ -72,6 +74,7 @@ class BootClock:
             # next window_s of messages its uptime in the past).
             self._recent.clear()
             self.reboots += 1
+            self.last_reboot_s = (self._newest_boot_ms / 1000.0, time_boot_ms / 1000.0)
             log.warning("autopilot boot clock went back from %.1f to %.1f s: rebooted", self._newest_boot_ms / 1000, time_boot_ms / 1000)
             self._newest_boot_ms = -np.inf
         self._newest_boot_ms = max(self._newest_boot_ms, time_boot_ms)
@@ -205,7 +208,10 @@ class MavLink:
     on the monotonic clock rounded to the microsecond (what a tlog keeps). When the link fails (a device unplugged,
     TCP closed) or no HEARTBEAT comes from the autopilot for ``timeout_s``, it is logged and reconnected with
     back-off, and its return is logged. Bytes that are not MAVLink are counted (``n_bad_data``) and skipped. If
-    the reader itself dies, ``failure`` holds why, and the companion stops.
+    the reader itself dies, ``failure`` holds why, and the companion stops. When the autopilot's HEARTBEAT comes
+    but no ATTITUDE for ``STREAMS_SILENT_S``, the message rates are asked for again (``stream_requests``): an
+    autopilot that restarted forgets them (a copter then streams nothing else), and another program on the link
+    may have changed them.
     """
 
     def __init__(self, url: str, on_message: Callable[[object, float], None], *, sim: bool = False, timeout_s: float = 3.0,
@@ -225,6 +231,10 @@ class MavLink:
         self._lost_at: float | None = None
         self._send_failing = False
         self._last_heartbeat = 0.0
+        self._attitude_s = 0.0  # the newest ATTITUDE's arrival, monotonic s
+        self._streams_asked_s = 0.0  # when the message rates were last asked for
+        self._streams_silent_said = False
+        self.stream_requests = 0
         self._conn = None
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
@@ -356,7 +366,7 @@ class MavLink:
         if kind == "HEARTBEAT" and self.target_system is None and msg.autopilot == mav.MAV_AUTOPILOT_ARDUPILOTMEGA:
             self.target_system = src
             self.connected.set()
-            self.request_streams()
+            self.request_streams(now)
             log.info("autopilot is system %d on %s", src, self.url)
             if self._lost_at is not None:
                 log.warning("link %s back after %.1f s", self.url, now - self._lost_at)
@@ -366,7 +376,21 @@ class MavLink:
             return  # another system on the link
         if kind == "HEARTBEAT":
             self._last_heartbeat = now
+            self._ask_again_if_silent(now)
+        elif kind == "ATTITUDE":
+            self._attitude_s = now
+            self._streams_silent_said = False
         self.on_message(msg, now)
+
+    def _ask_again_if_silent(self, now: float) -> None:
+        silent_s = now - self._attitude_s
+        if now - max(self._attitude_s, self._streams_asked_s) <= STREAMS_SILENT_S:
+            return
+        if not self._streams_silent_said:
+            log.warning("link %s: no ATTITUDE for %.1f s while the autopilot's HEARTBEAT comes (restarted, or another "
+                        "program changed its message rates): asking for them again", self.url, silent_s)
+            self._streams_silent_said = True
+        self.request_streams(now)
 
     # -- writing --------------------------------------------------------------------------------------------
 
@@ -403,7 +427,10 @@ class MavLink:
         while not self._stop.wait(1.0):
             self._send(lambda m: m.heartbeat_encode(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE))
 
-    def request_streams(self) -> None:
+    def request_streams(self, now_s: float | None = None) -> None:
+        """Ask for every message auxgps reads at its rate (SET_MESSAGE_INTERVAL); ``now_s`` on the monotonic clock."""
+        self._streams_asked_s = time.monotonic() if now_s is None else now_s
+        self.stream_requests += 1
         streams = {**STREAMS_HZ, **({i: max(hz, self.sim_hz) for i, hz in SIM_STREAMS_HZ.items()} if self.sim else {})}
         for msg_id, hz in streams.items():
             self._send(lambda m, i=msg_id, h=hz: m.command_long_encode(

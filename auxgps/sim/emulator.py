@@ -10,7 +10,7 @@ multirotor (or, with ``--mission``, the mission's places at their own heights, G
 ``--gps-lost-at-waypoint``, and the landing where it ends), takes GPS_INPUT as GPS2 under ArduPilot's rules
 (/work/shared/ARDUPILOT.md) and navigates on its own estimate, never on the truth. ``--faults`` takes the fault
 file of ``auxgps eval --faults`` (:mod:`auxgps.sim.faults`): its GPS1 faults (drag, inflated accuracy, dropouts)
-and telemetry faults (attitude stopping, height stuck, every message twice) begin ``at_s`` after take-off; camera
+and telemetry faults (attitude stopping, height stuck, every message twice, a reboot) begin ``at_s`` after take-off; camera
 faults and reordering are not emulated here (they are the camera's and the link's, not the autopilot's). Exit
 code 0 after landing, 3 after ``--max-seconds``, 130 when interrupted, 1 for a bad argument; the JSON log is
 written in every case.
@@ -1079,6 +1079,8 @@ class MavlinkServer:
         self.link_errors = 0
         self.clock_slips = 0
         self._stuck_alt_mm: int | None = None  # height_stuck: the relative altitude that repeats
+        self.boot_t0_s = 0.0  # emulated time the boot clock read 0 at (moved by an injected autopilot_reboot)
+        self._rebooting = False
         # (emulated s, this machine's monotonic s) once an emulated second: to put the companion's logs, stamped
         # on the same monotonic clock, beside the truth
         self.clock_pairs: list[tuple[float, float]] = []
@@ -1113,24 +1115,45 @@ class MavlinkServer:
             if target_t_s - sim.t_s > MAX_LAG_S:
                 wall0_s += (target_t_s - sim.t_s - MAX_LAG_S) / self.speedup
                 self.clock_slips += 1
-            self._poll_link()
+            rebooting = self._reboot_tick()
+            self._poll_link(handle=not rebooting)
             if sim.step_index % round(1.0 / sim.dt_s) == 0:
                 self.clock_pairs.append((round(sim.t_s, 3), round(time.monotonic(), 4)))
             sim.step()
-            self._send_due()
+            if rebooting:
+                sim.outbox.clear()
+                self.streams.due(sim.t_s)
+            else:
+                self._send_due()
         return "landed"
+
+    def _reboot_tick(self) -> bool:
+        """True while an injected ``autopilot_reboot`` keeps the autopilot silent and deaf. As it ends, the boot
+        clock starts again from 0 and every stream but HEARTBEAT is off: message intervals asked for are not kept
+        over a restart, and a copter's SRn_ rates are all 0 (GCS_MAVLink_Parameters.cpp)."""
+        rebooting = bool(self.sim.faults_active("autopilot_reboot"))
+        if self._rebooting and not rebooting:
+            self.boot_t0_s = self.sim.t_s
+            for name in self.streams.interval_s:
+                if name != "HEARTBEAT":
+                    self.streams.set_interval(name, None, self.sim.t_s)
+            self.sim.add_event("rebooted")
+        self._rebooting = rebooting
+        return rebooting
 
     def link_stats(self) -> dict[str, int]:
         return {"connections": self.link.connections, "errors": self.link_errors,
                 "dropped_bytes": self.link.dropped_bytes, "clock_slips": self.clock_slips}
 
-    def _poll_link(self) -> None:
+    def _poll_link(self, handle: bool = True) -> None:
+        """Read what has come in; handle it unless ``handle`` is False (a rebooting autopilot hears nothing)."""
         for _ in range(MAX_MESSAGES_PER_POLL):
             try:
                 msg = self.link.recv_msg()
                 if msg is None:
                     return
-                self._handle(msg)
+                if handle:
+                    self._handle(msg)
             except Exception:  # one bad message must not stop the vehicle: log it and go on
                 self.link_errors += 1
                 log.exception("error while reading or handling a MAVLink message; ignored")
@@ -1227,7 +1250,7 @@ class MavlinkServer:
     # -- telemetry ---------------------------------------------------------------------------------------------
 
     def _time_boot_ms(self) -> int:
-        return int(round(self.sim.t_s * 1e3))
+        return int(round((self.sim.t_s - self.boot_t0_s) * 1e3))
 
     def _send_HEARTBEAT(self) -> None:
         sim = self.sim
@@ -1295,13 +1318,13 @@ class MavlinkServer:
         reading = gps.reading(t_s)
         fix = gps.fix_type(t_s)
         if reading is None:
-            return int(t_s * 1e6), fix, 0, 0, 0, 65535, 65535, 0, 0, 0, 0
+            return int((t_s - self.boot_t0_s) * 1e6), fix, 0, 0, 0, 65535, 65535, 0, 0, 0, 0
         t_fix_s = gps.last_fix_t_s if gps.last_fix_t_s is not None else t_s
         v = reading.v_ned_m_s
         cog_cdeg = int(round(math.degrees(math.atan2(v[1], v[0])) % 360.0 * 100)) % 36000
         h_acc_mm = 0 if math.isnan(reading.h_acc_m) else int(round(reading.h_acc_m * 1e3))
         eph = 121 if fix >= FIX_3D else 9999
-        return (int(round(t_fix_s * 1e6)), fix, reading.lat_e7, reading.lon_e7, int(round(reading.alt_amsl_m * 1e3)), eph, 200,
+        return (int(round(max(t_fix_s - self.boot_t0_s, 0.0) * 1e6)), fix, reading.lat_e7, reading.lon_e7, int(round(reading.alt_amsl_m * 1e3)), eph, 200,
                 int(round(math.hypot(v[0], v[1]) * 100)), cog_cdeg, reading.satellites, h_acc_mm)
 
     def _truth_geodetic(self) -> tuple[int, int, float]:

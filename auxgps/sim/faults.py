@@ -13,6 +13,7 @@ A fault file (``auxgps eval --faults FILE``)::
       - {kind: height_stuck, at_s: 160, for_s: 5}       # the height above home repeats one value
       - {kind: telemetry_duplicated, at_s: 180, for_s: 3}  # every message twice
       - {kind: telemetry_reordered, at_s: 200, for_s: 3}   # each step's messages after the next step's
+      - {kind: autopilot_reboot, at_s: 220, for_s: 2}    # silent, then its boot clock from 0 (vehicle emulator only)
       - {kind: gps1_drag, flight: mapping, at_s: 30, for_s: 60, speed_m_s: 0.5, bearing_deg: 45}
       - {kind: gps1_inflated, flight: mapping, at_s: 40, for_s: 20, h_acc_m: 5}  # a 3D fix, 5 m accuracy and noise
       - {kind: gps1_dropout, flight: mapping, at_s: 70, for_s: 30, off_s: 1.5, period_s: 5}  # 1.5 s of every 5 s gone
@@ -25,6 +26,10 @@ the first ``off_s`` of every ``period_s``.
 
 The vehicle emulator (``python -m auxgps.sim.emulator --faults FILE``) takes the same file: it applies the GPS1 and
 telemetry faults, whatever their ``flight``, at ``at_s`` after take-off (its one flight maps, then positions).
+An autopilot reboot is the emulator's alone (``auxgps eval`` has no link and no boot clock; it ignores it): for
+``for_s`` the autopilot sends nothing and reads nothing, then its boot clock starts again from 0 and it streams
+only its HEARTBEAT, as a copter's SRn_ rates (all 0) leave it, until it is asked for messages again. The vehicle
+flies on meanwhile: a real copter would not, but what auxgps must survive is the telemetry.
 """
 
 from __future__ import annotations
@@ -40,7 +45,8 @@ from auxgps.config import _STRICT, NonNegative, Positive, parse_as, read_yaml
 from auxgps.core.events import Attitude, Gps1, Position
 
 Kind = Literal["camera_frozen", "camera_dark_half", "camera_saturated", "camera_blur", "camera_slow", "attitude_stops",
-               "height_stuck", "telemetry_duplicated", "telemetry_reordered", "gps1_drag", "gps1_inflated", "gps1_dropout"]
+               "height_stuck", "telemetry_duplicated", "telemetry_reordered", "autopilot_reboot", "gps1_drag", "gps1_inflated",
+               "gps1_dropout"]
 
 
 @config_dataclass(config=_STRICT, frozen=True)
