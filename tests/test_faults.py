@@ -42,6 +42,25 @@ def events_say(log_dir: Path, text: str) -> bool:
     return path.exists() and text in path.read_text()
 
 
+def fly_emulator(tmp_path: Path, emulator_args: list[str], run_args: list[str]) -> dict:
+    """The emulator's flight with `auxgps run` beside it (logs in tmp_path/run); both stopped whatever happens.
+    Returns the emulator's log."""
+    port = free_port()
+    emu = run = None
+    try:
+        emu = start_emulator(port, tmp_path / "emu.json", *emulator_args)
+        run = start_run(port, tmp_path / "run", *run_args)
+        emu.wait(timeout=600)
+    finally:
+        for p in (emu, run):
+            if p is not None and p.poll() is None:
+                p.terminate()
+        for p in (emu, run):
+            if p is not None:
+                p.wait(timeout=20)
+    return json.loads((tmp_path / "emu.json").read_text())
+
+
 def longest_without_gps2_fix_s(samples: list[dict], after_t_s: float) -> float:
     """The longest stretch after ``after_t_s`` in which GPS2 was unhealthy or had no 3D fix, emulated s."""
     longest, start = 0.0, None
@@ -169,22 +188,9 @@ def test_a_gps1_dragged_while_mapping_is_found_mapping_stops_and_the_vehicle_lan
     says home is)."""
     faults = tmp_path / "drag.yaml"
     faults.write_text(f"faults:\n  - {{kind: gps1_drag, flight: mapping, at_s: 30, for_s: 10, speed_m_s: {speed_m_s}, bearing_deg: 45}}\n")
-    port = free_port()
     failure = [] if take_primary else ["--fail-gps1-at", "60"]
-    emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "8", *failure, "--faults", str(faults),
-                         "--max-seconds", "600")
-    run = None
-    try:
-        run = start_run(port, tmp_path / "run", *(["--take-primary-on-drift"] if take_primary else []))
-        emu.wait(timeout=600)
-    finally:
-        for p in (emu, run):
-            if p is not None and p.poll() is None:
-                p.terminate()
-        for p in (emu, run):
-            if p is not None:
-                p.wait(timeout=20)
-    log = json.loads((tmp_path / "emu.json").read_text())
+    log = fly_emulator(tmp_path, ["--survey-size", "8", *failure, "--faults", str(faults), "--max-seconds", "600"],
+                       ["--take-primary-on-drift"] if take_primary else [])
     run_log = (tmp_path / "run" / "run.log").read_text() if (tmp_path / "run" / "run.log").exists() else ""
     assert log["exit_reason"] == "landed", run_log[-2000:]
     takeoff_t_s = next(e["t_s"] for e in log["events"] if e["event"] == "takeoff")
@@ -324,21 +330,8 @@ def test_an_autopilot_reboot_mid_flight_is_named_and_survived(tmp_path):
     97 % of the outputs; the vehicle lands without a failsafe."""
     faults = tmp_path / "reboot.yaml"
     faults.write_text("faults:\n  - {kind: autopilot_reboot, at_s: 50, for_s: 2}\n")
-    port = free_port()
-    emu = run = None
-    try:
-        emu = start_emulator(port, tmp_path / "emu.json", "--survey-size", "8", "--fail-gps1-at", "15", "--max-seconds",
-                             "600", "--faults", str(faults))
-        run = start_run(port, tmp_path / "run")
-        emu.wait(timeout=600)
-    finally:
-        for p in (emu, run):
-            if p is not None and p.poll() is None:
-                p.terminate()
-        for p in (emu, run):
-            if p is not None:
-                p.wait(timeout=20)
-    log = json.loads((tmp_path / "emu.json").read_text())
+    log = fly_emulator(tmp_path, ["--survey-size", "8", "--fail-gps1-at", "15", "--max-seconds", "600", "--faults",
+                                  str(faults)], [])
     assert log["exit_reason"] == "landed", (tmp_path / "run" / "run.log").read_text()[-2000:]
     assert any(e["event"] == "rebooted" for e in log["events"])
     said = [r["text"] for r in csv.DictReader(open(tmp_path / "run" / "events.csv")) if "autopilot rebooted" in r["text"]]
