@@ -232,18 +232,18 @@ class Companion:
             if self.primary is not None and msg.get_type() == "PARAM_VALUE":
                 self.primary.on_param_value(msg)
             rec = self._decoder(msg, arrival_s)
-            rebooted = self._decoder.clock.last_reboot_s if self._decoder.clock.reboots != self._reboots_said else None
-            self._reboots_said = self._decoder.clock.reboots
-            if rebooted is not None:
-                self.link.request_streams()  # forgotten over a restart, whatever its SRn_ rates give instead
-                self._event(arrival_s, f"autopilot rebooted: its boot clock went back from {rebooted[0]:.1f} s to "
-                            f"{rebooted[1]:.1f} s; stamps follow the new clock, message rates asked for again")
-            if rec is None:
-                return
+            note = None
             if isinstance(rec, Truth):
                 self._truth = rec  # only the simulated camera may see it
-                return
-            note = self.estimator.feed(rec)
+            elif rec is not None:
+                note = self.estimator.feed(rec)
+        clock = self._decoder.clock  # this thread's alone: what follows needs no lock, and holds up no GPS_INPUT
+        if clock.reboots != self._reboots_said:
+            self._reboots_said = clock.reboots
+            self.link.request_streams()  # forgotten over a restart, whatever its SRn_ rates give instead
+            before_s, after_s = clock.last_reboot_s
+            self._event(arrival_s, f"autopilot rebooted: its boot clock went back from {before_s:.1f} s to "
+                        f"{after_s:.1f} s; stamps follow the new clock, message rates asked for again")
         if note:
             self._event(rec.t_s, note)
 
