@@ -99,6 +99,10 @@ class NoiseModelConfig:
     heading_deg: Positive = 0.5
     gps_horizontal_m: Positive = 0.08
     altitude_m: Positive = 0.08
+    # A frame's timestamp against the autopilot's attitude clock, s: while the vehicle turns, the attitude taken
+    # for the frame is off by the turn rate times this (a camera's latency known to a frame's readout; in SITL the
+    # simulator's unstamped truth, read up to 25 ms late).
+    frame_time_s: Positive = 0.02
 
 
 @dataclass(config=_STRICT, frozen=True)

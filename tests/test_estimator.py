@@ -8,7 +8,7 @@ import pytest
 
 from auxgps.config import PipelineConfig, parse_as
 from auxgps.core.camera import CameraPose
-from auxgps.core.estimator import Estimator, FrameResult
+from auxgps.core.estimator import Estimator, FrameJob, FrameResult
 from auxgps.core.events import Frame
 from auxgps.core.supervisor import Mode
 from auxgps.sim.flight import SimConfig, fly, imu_bias, lawnmower_waypoints
@@ -50,8 +50,14 @@ def flight():
     return flight_events()
 
 
+#: These flights' frames are stamped with the very moment the simulator rendered them: the estimator is told so
+#: (``noise.frame_time_s`` is for a real camera's timestamps, which turn a frame taken in a turn by the turn rate
+#: times their error; this small survey turns often).
+SIM_PIPELINE = PipelineConfig(noise=dataclasses.replace(PipelineConfig().noise, frame_time_s=1e-3))
+
+
 def run(world, events):
-    est = Estimator(PipelineConfig(), frame=world.frame)
+    est = Estimator(SIM_PIPELINE, frame=world.frame)
     said = []
     for kind, e in events:
         if kind == "feed":
@@ -107,15 +113,42 @@ def test_a_flight_maps_while_gps1_is_good_then_positions_on_its_map(flight):
     assert isinstance(said[0], (type(None), str)) and isinstance(frames[0][1], FrameResult)
 
 
-def test_the_attitude_of_a_frame_is_the_nearest_sample_even_out_of_order():
+def test_the_attitude_of_a_frame_is_interpolated_between_samples_even_out_of_order():
+    """A frame's attitude is the autopilot's turned on between the samples about its time; past the newest, turned
+    on at the newest's body rates (for at most ``max_attitude_age_s``); before the first, the first. The turn rate
+    is the autopilot's own (its gyros), in NED axes."""
     from auxgps.core.events import Attitude
 
     est = Estimator(PipelineConfig())
-    for t in (0.0, 0.25, 0.5, 0.375, 0.75):  # 0.375 arrives late (times exact in binary: the ties are ties)
-        est.feed(Attitude(t, np.array([t, 0.0, 0.0])))
+    yaw = np.pi / 2  # heading east: a roll rate (about the nose) is a rate about the east axis
+    for t in (0.0, 0.25, 0.5, 0.375, 0.75):  # 0.375 arrives late; the roll is the time, a turn of 1 rad/s
+        est.feed(Attitude(t, np.array([t, 0.0, yaw]), np.array([1.0, 0.0, 0.0])))
     assert [a.t_s for a in est._attitudes] == [0.0, 0.25, 0.375, 0.5, 0.75]
-    for t, nearest in ((0.38, 0.375), (0.4375, 0.375), (0.44, 0.5), (-1.0, 0.0), (9.0, 0.75), (0.125, 0.0)):
-        assert est._attitude_at(t)[0] == nearest  # a tie (0.125, 0.4375) takes the earlier sample
+    reach = est.options.max_attitude_age_s
+    for t, roll in ((0.38, 0.38), (0.4375, 0.4375), (0.125, 0.125), (0.8, 0.8), (9.0, 0.75 + reach), (-1.0, 0.0)):
+        euler, rate_ned = est._attitude_at(t)
+        assert euler == pytest.approx([roll, 0.0, yaw], abs=1e-9)
+        assert rate_ned == pytest.approx([0.0, 1.0, 0.0], abs=1e-9)
+    est.feed(Attitude(1.0, np.array([1.0, 0.0, yaw])))  # no rates sent: none assumed
+    assert est._attitude_at(1.1)[0] == pytest.approx([1.0, 0.0, yaw]) and not np.any(est._attitude_at(1.1)[1])
+
+
+def test_a_frame_taken_while_turning_gets_a_wider_heading_sigma():
+    """Turning at 60 deg/s, a frame's heading is known no better than the turn rate times its timestamp's
+    uncertainty; still, it is known as well as the telemetry says."""
+    from auxgps.core.events import Attitude
+
+    est = Estimator(PipelineConfig())
+    noise = est.cfg.noise
+    rate = np.deg2rad(60.0)
+    for k in range(10):
+        est.feed(Attitude(0.02 * k, np.array([0.0, 0.0, rate * 0.02 * k]), np.array([0.0, 0.0, rate])))
+    turning = est._attitude_sigmas(FrameJob(Frame(0.05, np.zeros((2, 2, 3), np.uint8)), np.eye(3), 10.0, None, False, None,
+                                            rate_ned_rad_s=est._attitude_at(0.05)[1]))
+    assert turning["heading_sigma_rad"] == pytest.approx(np.hypot(np.deg2rad(noise.heading_deg), rate * noise.frame_time_s))
+    assert turning["tilt_sigma_rad"] == pytest.approx(np.deg2rad(noise.attitude_deg))
+    still = est._attitude_sigmas(FrameJob(Frame(0.05, np.zeros((2, 2, 3), np.uint8)), np.eye(3), 10.0, None, False, None))
+    assert still["heading_sigma_rad"] == pytest.approx(np.deg2rad(noise.heading_deg))
 
 
 @pytest.mark.slow
@@ -125,7 +158,7 @@ def test_a_restart_without_gps1_starts_from_the_map_alone(flight):
     world, events, traj = flight
     first, _ = run(world, events)
     restart_s = 17.0
-    est = Estimator(PipelineConfig(), landmarks=first.landmarks, frame=world.frame)
+    est = Estimator(SIM_PIPELINE, landmarks=first.landmarks, frame=world.frame)
     acquired_s, outputs = None, []
     for kind, e in events:
         t = e if kind == "output" else e.t_s

@@ -45,7 +45,7 @@ from auxgps.core.events import Attitude, Frame, Gps1, Imu, Position
 from auxgps.core.features import FeatureDetector, Features, near_nadir, to_gray
 from auxgps.core.frame_check import FrameCheck
 from auxgps.core.fusion import FusedEstimate, GateDecision, ImuSample, NavFilter
-from auxgps.core.geometry import LocalFrame, R_body_cam_from_mount, R_ned_body_from_euler
+from auxgps.core.geometry import LocalFrame, R_body_cam_from_mount, R_ned_body_from_euler, attitude_between, attitude_turned
 from auxgps.core.gps_output import GpsOutput, gps_output
 from auxgps.core.heading import HeadingEstimate, HeadingTracker, MotionView, ground_points_ne
 from auxgps.core.landmarks import LandmarkMap
@@ -91,6 +91,7 @@ class FrameJob:
     p_gps_ned_m: np.ndarray | None
     speed_h_m_s: float | None = None  # the filter's horizontal speed at the capture (None: no filter)
     heading: HeadingEstimate | None = None  # the autopilot's heading error taken out of R_ned_body (None: not solved)
+    rate_ned_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))  # the body's turn rate at the capture, NED axes
 
 
 @dataclass(frozen=True)
@@ -424,8 +425,41 @@ class Estimator:
             k -= 1
         return atts[k]
 
-    def _attitude_at(self, t_s: float) -> np.ndarray:
-        return self._nearest_attitude(t_s).euler_rad
+    def _attitude_at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """The attitude at ``t_s`` (ZYX Euler, rad) and the body's turn rate then (rad/s, NED axes).
+
+        Between two samples at most ``2 * max_attitude_age_s`` apart, interpolated; past the newest (a frame
+        comes before the attitude after it), the newest turned on at its own body rates for up to
+        ``max_attitude_age_s``; else the nearest sample. The rate is the nearest sample's own (the autopilot's
+        gyros, not a difference of two attitudes, whose noise would pass for a turn); zero without one."""
+        atts = self._attitudes
+        near = self._nearest_attitude(t_s)
+        k = bisect.bisect_left(atts, t_s, key=lambda a: a.t_s)
+        rate_body = near.rate_body_rad_s if near.rate_body_rad_s is not None else np.zeros(3)
+        if 0 < k < len(atts) and 0.0 < atts[k].t_s - atts[k - 1].t_s <= 2.0 * self.options.max_attitude_age_s:
+            euler = attitude_between(t_s, atts[k - 1].t_s, atts[k - 1].euler_rad, atts[k].t_s, atts[k].euler_rad)
+        elif t_s > near.t_s:
+            euler = attitude_turned(near.euler_rad, rate_body, min(t_s - near.t_s, self.options.max_attitude_age_s))
+        else:
+            euler = near.euler_rad
+        return euler, R_ned_body_from_euler(*euler) @ rate_body
+
+    def _attitude_sigmas(self, job: FrameJob) -> dict[str, float]:
+        """How far a frame's attitude may be off, one sigma, rad (``tilt_sigma_rad``, ``heading_sigma_rad``): the
+        telemetry's own noise, the heading solver's uncertainty, and what the frame's timestamp uncertainty
+        (``noise.frame_time_s``) makes of the body's turn rate: turning at 60 deg/s, 20 ms is 1.2 deg, 0.2 m on
+        the ground 10 m from the camera."""
+        noise = self.cfg.noise
+        rate = job.rate_ned_rad_s
+        tilt = np.hypot(np.deg2rad(noise.attitude_deg), np.hypot(rate[0], rate[1]) * noise.frame_time_s)
+        heading_var = np.deg2rad(noise.heading_deg) ** 2 + self._timing_heading_var(job)
+        if job.heading is not None:
+            heading_var += job.heading.sigma_rad**2
+        return {"tilt_sigma_rad": float(tilt), "heading_sigma_rad": float(np.sqrt(heading_var))}
+
+    def _timing_heading_var(self, job: FrameJob) -> float:
+        """What the frame's timestamp uncertainty makes of the heading's turn rate, rad^2."""
+        return float((job.rate_ned_rad_s[2] * self.cfg.noise.frame_time_s) ** 2)
 
     def _heading_at(self, t_s: float) -> HeadingEstimate | None:
         return self.heading.at(t_s) if self.heading is not None else None
@@ -455,20 +489,21 @@ class Estimator:
             self._attitude_lost = False
             self._pending_note = _joined(self._pending_note, "attitude stream back")
         heading = self._heading_at(frame.t_s)
-        if self.filter is None and self._attitudes and alt is not None and len(self.landmarks) and not self.supervisor.gps1_trusted:
-            # No filter, no GPS1, a map: locate without a prior, to start the filter (acquisition)
-            return FrameJob(frame, self._R_ned_body(self._attitude_at(frame.t_s), heading), alt, None, False, None, heading=heading)
-        if self.filter is None or not self._attitudes or alt is None:
+        if not self._attitudes or alt is None or (self.filter is None and (not len(self.landmarks) or self.supervisor.gps1_trusted)):
             missing = "filter (no GPS1 fix yet)" if self.filter is None else "attitude" if not self._attitudes else "height"
             return FrameResult(frame.t_s, "skipped", f"no {missing}")
-        R = self._R_ned_body(self._attitude_at(frame.t_s), heading)
+        euler, rate_ned = self._attitude_at(frame.t_s)
+        R = self._R_ned_body(euler, heading)
+        if self.filter is None:
+            # No filter, no GPS1, a map: locate without a prior, to start the filter (acquisition)
+            return FrameJob(frame, R, alt, None, False, None, heading=heading, rate_ned_rad_s=rate_ned)
         mapping = self.supervisor.gps1_trusted
         # Where GPS1 puts the camera at the frame's time: the filter, which fuses GPS1 at its measurement time with
         # the IMU, interpolates between GPS1's readings and carries its lag.
         est = self.filter.estimate_at(frame.t_s)
         p_gps = est.p_ned_m if mapping else None
         return FrameJob(frame, R, alt, PositionPrior(est.p_ned_m, est.sigma_h_worst_m), mapping, p_gps,
-                        float(np.hypot(est.v_ned_m_s[0], est.v_ned_m_s[1])), heading)
+                        float(np.hypot(est.v_ned_m_s[0], est.v_ned_m_s[1])), heading, rate_ned)
 
     def _check_frame(self, job: FrameJob, grey: np.ndarray) -> tuple[str | None, str | None]:
         """The frame's fault (None: fit to locate from) and a line for the events log when a fault begins or ends
@@ -534,14 +569,12 @@ class Estimator:
             feats = self.detector.detect(grey, R_ned_cam, scale)
         note = _joined(note, self._featureless_note(job.frame.t_s, len(feats)))
         mapped = None
-        heading_sigma = None
-        if job.heading is not None:
-            heading_sigma = float(np.hypot(np.deg2rad(self.cfg.noise.heading_deg), job.heading.sigma_rad))
+        sigmas = self._attitude_sigmas(job)
         # The self-check, which judges GPS1 by the map, locates on features near nadir only (see
         # DetectorConfig.max_off_nadir_deg); the mapper and positioning take every feature.
         locating = near_nadir(feats, self.camera, R_ned_cam, self.cfg.detector.max_off_nadir_deg) if job.mapping else feats
         with sw("locating"):
-            located = self.localiser.locate(locating, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior, cand, heading_sigma) \
+            located = self.localiser.locate(locating, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior, cand, **sigmas) \
                 if len(cand) or not len(prior_cand) else None
             if len(prior_cand) and not isinstance(located, Fix):
                 prior_scale = 1.0 if job.mapping else self.localiser.detection_scale(job.alt_above_origin_m, job.prior, prior_cand)
@@ -550,14 +583,16 @@ class Estimator:
                     with sw("detection"):
                         prior_feats = self.detector.detect(grey, job.R_ned_body @ self.R_body_cam, prior_scale)
                 on_prior = self.localiser.locate(prior_feats, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m, job.prior,
-                                                 prior_cand, heading_sigma)
+                                                 prior_cand, **sigmas)
                 if located is None or isinstance(on_prior, Fix):
                     located = on_prior
         if job.mapping:
+            # The mapper takes one sigma for the direction of every ray: the tilt's, and the turn's timing part
+            ray_sigma = float(np.hypot(sigmas["tilt_sigma_rad"], np.sqrt(self._timing_heading_var(job))))
             with sw("mapping"):
                 retag = self.cfg.heading.follow_s > 0  # keep what turning the views again needs
                 mapped = self.mapper.process(feats, NavSample(job.frame.t_s, job.p_gps_ned_m, job.alt_above_origin_m, job.R_ned_body,
-                                                              job.heading if retag else None))
+                                                              job.heading if retag else None, ray_sigma))
         return FrameWork(job, feats, mapped, located, note)
 
     def finish_frame(self, work: FrameWork) -> FrameResult:
@@ -607,7 +642,8 @@ class Estimator:
         if decision.accepted:
             self.last_correction_t_s = max(res.t_s, self.last_correction_t_s or -np.inf)
             if self.heading is not None and job.heading is not None and res.heading_turn_rad is not None:
-                self.heading.observe_turn(res.t_s, res.heading_turn_rad, res.heading_turn_var_rad2, job.heading.offset_rad)
+                self.heading.observe_turn(res.t_s, res.heading_turn_rad, res.heading_turn_var_rad2 + self._timing_heading_var(job),
+                                          job.heading.offset_rad)
         elif decision.reason.endswith("older than the history"):  # a frame held up longer than the filter remembers
             common["note"] = _joined(common["note"], self._telemetry_fault(
                 f"visual fix refused: {decision.reason} ({self.cfg.fusion.history_s:g} s); frames are late", t))
@@ -682,7 +718,7 @@ class Estimator:
         tilt_m = job.alt_above_origin_m * np.deg2rad(noise.attitude_deg)
         shift_sigma_m = float(np.sqrt(self.cfg.heading.gps_relative_m**2 + 2.0 * tilt_m**2))
         self.heading.observe_view(MotionView(job.frame.t_s, c[:2], ids[sel][order], g[order]), shift_sigma_m,
-                                  0.5 * np.deg2rad(noise.heading_deg) ** 2)
+                                  0.5 * np.deg2rad(noise.heading_deg) ** 2 + self._timing_heading_var(job))
 
     def _undo_unverified(self, t_s: float) -> str | None:
         """GPS1 found dragged at ``t_s``: put the map back as it was when the last agreeing self-check could vouch

@@ -14,10 +14,12 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Attitude:
-    """The autopilot's attitude (ATTITUDE): roll, pitch, yaw of the body in NED, rad."""
+    """The autopilot's attitude (ATTITUDE): roll, pitch, yaw of the body in NED, rad, and its body rates (p, q, r:
+    rollspeed, pitchspeed, yawspeed), rad/s (None: not sent)."""
 
     t_s: float
     euler_rad: np.ndarray
+    rate_body_rad_s: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -209,3 +209,27 @@ def pairs_within(a_px: np.ndarray, b_px: np.ndarray, radius_px: float) -> tuple[
     else:
         order = np.argsort(i * len(b_px) + j)  # one key per pair, unique: the (i, j) order in one sort
     return i[order].astype(np.int64), j[order].astype(np.int64)
+
+
+def greedy_one_to_one(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The positions of the pairs ``(a[k], b[k])``, taken in order, that a greedy one-to-one assignment keeps (a
+    pair is kept unless an earlier kept pair has its ``a`` or its ``b``), ascending.
+
+    In rounds rather than pair by pair: a pair that is the first remaining one of both its ``a`` and its ``b`` is
+    kept by the sequential greedy too (everything before it that shares either was dropped for a kept pair
+    still earlier), so each round keeps all such pairs and drops the pairs they block; the first remaining pair
+    always qualifies. The same pairs as the loop, in a few rounds of array work.
+    """
+    def first_of_each(x: np.ndarray) -> np.ndarray:
+        first = np.zeros(len(x), bool)
+        first[np.unique(x, return_index=True)[1]] = True
+        return first
+
+    k = np.arange(len(a))
+    kept = []
+    while len(k):
+        ak, bk = a[k], b[k]
+        keep = first_of_each(ak) & first_of_each(bk)
+        kept.append(k[keep])
+        k = k[~(np.isin(ak, ak[keep]) | np.isin(bk, bk[keep]))]
+    return np.sort(np.concatenate(kept)) if kept else np.zeros(0, np.int64)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pymap3d
+from scipy.spatial.transform import Rotation
 
 #: Camera looking straight down, image top towards the nose: cam x = body right, cam y = body back, cam z = body down.
 R_BODY_CAM_DOWN = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
@@ -77,6 +78,39 @@ def euler_from_R_ned_body(R_ned_body: np.ndarray) -> tuple[float, float, float]:
     roll = np.arctan2(R_ned_body[2, 1], R_ned_body[2, 2])
     yaw = np.arctan2(R_ned_body[1, 0], R_ned_body[0, 0])
     return float(roll), float(pitch), float(yaw)
+
+
+def body_rates_from_euler_rates(euler_rad: np.ndarray, euler_rate_rad_s: np.ndarray) -> np.ndarray:
+    """Body angular rates (p, q, r) rad/s from ZYX Euler angles (rad) and their rates (rad/s)."""
+    roll, pitch, _ = euler_rad
+    droll, dpitch, dyaw = euler_rate_rad_s
+    return np.array([
+        droll - dyaw * np.sin(pitch),
+        dpitch * np.cos(roll) + dyaw * np.sin(roll) * np.cos(pitch),
+        -dpitch * np.sin(roll) + dyaw * np.cos(roll) * np.cos(pitch),
+    ])
+
+
+def _rotation(euler_rad: np.ndarray) -> Rotation:
+    return Rotation.from_euler("ZYX", [euler_rad[2], euler_rad[1], euler_rad[0]])
+
+
+def _euler(r: Rotation) -> np.ndarray:
+    yaw, pitch, roll = r.as_euler("ZYX")
+    return np.array([roll, pitch, yaw])
+
+
+def attitude_between(t_s: float, t0_s: float, euler0_rad: np.ndarray, t1_s: float, euler1_rad: np.ndarray) -> np.ndarray:
+    """The attitude (ZYX Euler, rad) at ``t_s`` in ``[t0_s, t1_s]`` between two samples, turning at the one rate
+    that carries the first into the second (spherical interpolation)."""
+    r0 = _rotation(euler0_rad)
+    u = float(np.clip((t_s - t0_s) / (t1_s - t0_s), 0.0, 1.0))
+    return _euler(r0 * Rotation.from_rotvec(u * (r0.inv() * _rotation(euler1_rad)).as_rotvec()))
+
+
+def attitude_turned(euler_rad: np.ndarray, rate_body_rad_s: np.ndarray, dt_s: float) -> np.ndarray:
+    """The attitude (ZYX Euler, rad) ``dt_s`` after ``euler_rad``, turning at ``rate_body_rad_s`` (p, q, r)."""
+    return _euler(_rotation(euler_rad) * Rotation.from_rotvec(np.asarray(rate_body_rad_s, float) * dt_s))
 
 
 def R_body_cam_from_mount(roll_rad: float = 0.0, pitch_rad: float = 0.0, yaw_rad: float = 0.0) -> np.ndarray:

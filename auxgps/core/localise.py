@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from auxgps.core.camera import CameraPose, PinholeCamera
-from auxgps.core.features import Features, hamming, pairs_within
+from auxgps.core.features import Features, greedy_one_to_one, hamming, pairs_within
 from auxgps.core.geometry import cross_matrix
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.stopwatch import null_stopwatch
@@ -212,9 +212,11 @@ class Localiser:
         )
 
     def locate(self, features: Features, t_s: float, R_ned_body: np.ndarray, alt_above_origin_m: float, prior: PositionPrior | None,
-               candidate_ids: np.ndarray | None = None, heading_sigma_rad: float | None = None) -> LocateResult:
+               candidate_ids: np.ndarray | None = None, tilt_sigma_rad: float | None = None,
+               heading_sigma_rad: float | None = None) -> LocateResult:
         """Locate one frame. ``R_ned_body`` and ``alt_above_origin_m`` come from the autopilot (attitude, barometer);
-        ``heading_sigma_rad``: how far its heading may be off (None: ``noise.heading_deg``).
+        ``tilt_sigma_rad``, ``heading_sigma_rad``: how far its attitude may be off, one sigma (None:
+        ``noise.attitude_deg``, ``noise.heading_deg``).
 
         ``candidate_ids``: what :meth:`candidates` gives for this ``alt_above_origin_m`` and ``prior`` on the map as it is,
         when the caller has it already (it asked for the frame's :meth:`detection_scale`); else it is looked up.
@@ -289,9 +291,12 @@ class Localiser:
         # Unbalanced: half the build time of a frame's features, the same nearest distances.
         feature_tree = cKDTree(features.uv_px, balanced_tree=False, compact_nodes=False)
         prior_info = self._refine_prior_info
-        if heading_sigma_rad is not None:
+        if tilt_sigma_rad is not None or heading_sigma_rad is not None:
             prior_info = prior_info.copy()
-            prior_info[5, 5] = 1.0 / max(heading_sigma_rad, 1e-6) ** 2
+            if tilt_sigma_rad is not None:
+                prior_info[3, 3] = prior_info[4, 4] = 1.0 / max(tilt_sigma_rad, 1e-6) ** 2
+            if heading_sigma_rad is not None:
+                prior_info[5, 5] = 1.0 / max(heading_sigma_rad, 1e-6) ** 2
         view = _View(features, feature_tree, R_ned_cam, alt_above_origin_m, p_cand_ned_m @ R_ned_cam, prior_info)
         verdict = self._choose(corr, view, prior, seeds, support, min_inliers, margin)
         if isinstance(verdict, tuple):  # ambiguous: the reason and how far apart the rivals are
@@ -384,7 +389,7 @@ class Localiser:
     def _reading(self, corr: _Correspondences, view: _View, seed: int) -> _Reading:
         """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
         dist2 = cdist(corr.hyp, corr.hyp[seed][None], "sqeuclidean")[:, 0]  # as _consensus measures: the same members
-        inl = self._one_per_feature(dist2 <= np.square(corr.tau), corr.feat_i, dist2)
+        inl = self._one_to_one(dist2 <= np.square(corr.tau), corr.feat_i, corr.lm_id, dist2)
         fit = self._refine(np.array([*corr.hyp[seed], -view.alt_above_origin_m]), corr, inl, view.alt_above_origin_m, 1.0 / view.features.scale,
                            view.prior_info)
         explained = self._explained_share(fit.p, view)
@@ -531,14 +536,14 @@ class Localiser:
         return np.unpackbits(votes, axis=1, count=len(seeds)).sum(axis=0)
 
     @staticmethod
-    def _one_per_feature(member_row: np.ndarray, feat_i: np.ndarray, dist2: np.ndarray) -> np.ndarray:
-        """Boolean (K,) keeping, per feature, its member correspondence closest to the hypothesis (``dist2``:
-        squared distances to it)."""
+    def _one_to_one(member_row: np.ndarray, feat_i: np.ndarray, lm_id: np.ndarray, dist2: np.ndarray) -> np.ndarray:
+        """Boolean (K,) keeping the member correspondences closest to the hypothesis (``dist2``: squared distances
+        to it), one per feature and one per landmark: two features on one landmark (a corner found twice, on two
+        pyramid levels) are one measurement of it, not two."""
         keep = np.zeros(len(feat_i), bool)
         idx = np.flatnonzero(member_row)
-        order = idx[np.argsort(dist2[idx])]
-        _, first = np.unique(feat_i[order], return_index=True)
-        keep[order[first]] = True
+        order = idx[np.argsort(dist2[idx], kind="stable")]
+        keep[order[greedy_one_to_one(feat_i[order], lm_id[order])]] = True
         return keep
 
     def _refine(self, p0: np.ndarray, corr: _Correspondences, inl: np.ndarray, alt_above_origin_m: float, pixel_size: float = 1.0,
@@ -577,6 +582,7 @@ class Localiser:
         dtheta = np.zeros(3)
         cov = np.full((3, 3), np.nan)
         turn_var = np.inf
+        err_px = np.full(len(idx), np.inf)  # fewer than two inliers: no fit, no quality
         for _ in range(3):
             n_inl = int(kept.sum())
             if n_inl < 2:

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from auxgps.core.camera import PinholeCamera
-from auxgps.core.features import Features, hamming, pairs_within
+from auxgps.core.features import Features, greedy_one_to_one, hamming, pairs_within
 from auxgps.core.geometry import intersect_rays_with_horizontal_plane
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.retag import HeadingView
@@ -84,6 +84,7 @@ class Mapper:
         pose = nav.camera_pose(self.R_body_cam)
         c = pose.p_cam_in_ned_m
         rays = pose.rays_ned(self.camera, features.uv_px)
+        sigma_att_rad = self._sigma_att_rad if nav.attitude_sigma_rad is None else nav.attitude_sigma_rad
         # A keypoint found on a coarser pyramid level is located less precisely.
         sigma_px = self.cfg.noise.pixel_px * self.cfg.detector.scale_factor ** features.octave / features.scale
 
@@ -100,7 +101,7 @@ class Mapper:
             self.map.count_visible(cand[self.camera.in_image(uv_lm)], nav.t_s)
             if len(cand):
                 with self.stopwatch("matching"):
-                    matched_feat, matched_lm, chi2 = self._guided_match(features, cand, uv_lm, rays, c, sigma_px)
+                    matched_feat, matched_lm, chi2 = self._guided_match(features, cand, uv_lm, rays, c, sigma_px, sigma_att_rad)
 
         # What the views are geotagged with, for turning them again when the heading is better known.
         view = HeadingView(nav.heading.offset_rad, c.copy(), nav.heading.memory) if nav.heading is not None else None
@@ -108,7 +109,7 @@ class Mapper:
         if len(matched_feat):
             d = rays[matched_feat]
             rng_m = np.linalg.norm(self.map.p_ned_m[matched_lm].astype(float) - c, axis=1)
-            A = ray_information(d, self._sigma_perp(rng_m, sigma_px[matched_feat]))
+            A = ray_information(d, self._sigma_perp(rng_m, sigma_px[matched_feat], sigma_att_rad))
             b = np.einsum("nij,j->ni", A, c)
             self.map.observe(matched_lm, A, b, features.descriptors[matched_feat], d[:, 2].astype(np.float16), chi2,
                              rng_m / features.scale, nav.t_s, view)
@@ -122,19 +123,19 @@ class Mapper:
         n_added = 0
         if len(new):
             rng_m = np.linalg.norm(p0 - c, axis=1)
-            A = ray_information(rays[new], self._sigma_perp(rng_m, sigma_px[new]))
+            A = ray_information(rays[new], self._sigma_perp(rng_m, sigma_px[new], sigma_att_rad))
             A[:, 2, 2] += 1.0 / cfg.initial_height_sigma_m**2
             ids_out[new] = self.map.add(features.descriptors[new], p0, A, rays[new, 2].astype(np.float16), rng_m / features.scale,
                                         nav.t_s, view)
             n_added = len(new)
         return MappingResult(n, len(matched_feat), n_added, ids_out)
 
-    def _sigma_perp(self, range_m: np.ndarray, sigma_px: np.ndarray) -> np.ndarray:
+    def _sigma_perp(self, range_m: np.ndarray, sigma_px: np.ndarray, sigma_att_rad: float) -> np.ndarray:
         """One-sigma offset of a ray at ``range_m`` across its direction: pixel, attitude and GPS noise, m."""
-        sigma_angle = np.hypot(sigma_px / self.camera.focal_px, self._sigma_att_rad)
+        sigma_angle = np.hypot(sigma_px / self.camera.focal_px, sigma_att_rad)
         return np.hypot(range_m * sigma_angle, self._sigma_pos_m)
 
-    def _guided_match(self, features, cand, uv_lm, rays, c, sigma_px) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _guided_match(self, features, cand, uv_lm, rays, c, sigma_px, sigma_att_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One-to-one matches (feature indices, landmark ids, squared Mahalanobis innovations).
 
         GPS and attitude errors shift every landmark's predicted pixel alike, by a few pixels; corners of a
@@ -166,7 +167,7 @@ class Mapper:
         range_m = range_u_m[of_u]
         radius = np.minimum(3.0 * np.hypot(sigma_px[fi] * 2.0, sigma_lm_px), cfg.match_radius_px)
         d_shifted = np.linalg.norm(offsets - shift, axis=1)
-        m2 = ray_mahalanobis2(L_u[of_u], cov_u[of_u], c, rays[fi], self._sigma_perp(range_m, sigma_px[fi]))
+        m2 = ray_mahalanobis2(L_u[of_u], cov_u[of_u], c, rays[fi], self._sigma_perp(range_m, sigma_px[fi], sigma_att_rad))
         ok = (d_shifted <= radius) & (m2 <= cfg.gate_chi2)
         fi, ci, ham, m2, d_shifted = fi[ok], ci[ok], ham[ok], m2[ok], d_shifted[ok]
         # Greedy one-to-one assignment, nearest first, then best descriptor.
@@ -214,27 +215,3 @@ def _disk(r: int) -> np.ndarray:
     """A (2r+1, 2r+1) float32 kernel of ones within ``r`` of its centre."""
     y, x = np.mgrid[-r : r + 1, -r : r + 1]
     return (x * x + y * y <= r * r).astype(np.float32)
-
-
-def greedy_one_to_one(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The positions of the pairs ``(a[k], b[k])``, taken in order, that a greedy one-to-one assignment keeps (a
-    pair is kept unless an earlier kept pair has its ``a`` or its ``b``), ascending.
-
-    In rounds rather than pair by pair: a pair that is the first remaining one of both its ``a`` and its ``b`` is
-    kept by the sequential greedy too (everything before it that shares either was dropped for a kept pair
-    still earlier), so each round keeps all such pairs and drops the pairs they block; the first remaining pair
-    always qualifies. The same pairs as the loop, in a few rounds of array work.
-    """
-    def first_of_each(x: np.ndarray) -> np.ndarray:
-        first = np.zeros(len(x), bool)
-        first[np.unique(x, return_index=True)[1]] = True
-        return first
-
-    k = np.arange(len(a))
-    kept = []
-    while len(k):
-        ak, bk = a[k], b[k]
-        keep = first_of_each(ak) & first_of_each(bk)
-        kept.append(k[keep])
-        k = k[~(np.isin(ak, ak[keep]) | np.isin(bk, bk[keep]))]
-    return np.sort(np.concatenate(kept)) if kept else np.zeros(0, np.int64)

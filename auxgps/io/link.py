@@ -117,7 +117,8 @@ def decode(msg, clock: BootClock, arrival_s: float):
     """One autopilot message -> a record, or None for messages auxgps does not use."""
     kind = msg.get_type()
     if kind == "ATTITUDE":
-        return Attitude(clock.to_local(msg.time_boot_ms, arrival_s), np.array([msg.roll, msg.pitch, msg.yaw]))
+        return Attitude(clock.to_local(msg.time_boot_ms, arrival_s), np.array([msg.roll, msg.pitch, msg.yaw]),
+                        np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed]))
     if kind == "SCALED_IMU":
         acc = np.array([msg.xacc, msg.yacc, msg.zacc], float) * G_M_S2 / 1000.0  # milli-g -> m/s^2
         return Imu(clock.to_local(msg.time_boot_ms, arrival_s), acc)

@@ -56,7 +56,7 @@ import numpy as np  # noqa: E402
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.quaternion import QuaternionBase  # noqa: E402
 
-from auxgps.core.geometry import LocalFrame, R_ned_body_from_euler  # noqa: E402
+from auxgps.core.geometry import LocalFrame, R_ned_body_from_euler, body_rates_from_euler_rates  # noqa: E402
 from auxgps.errors import AuxGpsError  # noqa: E402
 from auxgps.io.mission import load_mission  # noqa: E402
 from auxgps.sim.flight import (  # noqa: E402
@@ -462,17 +462,6 @@ class StreamScheduler:
             names.append(name)
             self._next_t_s[name] = max(self._next_t_s[name] + interval_s, t_s + 0.5 * interval_s)
         return names
-
-
-def body_rates_from_euler_rates(euler_rad: np.ndarray, euler_rate_rad_s: np.ndarray) -> np.ndarray:
-    """Body angular rates (p, q, r) rad/s from ZYX Euler angles (rad) and their rates (rad/s)."""
-    roll, pitch, _ = euler_rad
-    droll, dpitch, dyaw = euler_rate_rad_s
-    return np.array([
-        droll - dyaw * math.sin(pitch),
-        dpitch * math.cos(roll) + dyaw * math.sin(roll) * math.cos(pitch),
-        -dpitch * math.sin(roll) + dyaw * math.cos(roll) * math.cos(pitch),
-    ])
 
 
 def _wrap_pi(angle_rad: float | np.ndarray) -> float | np.ndarray:

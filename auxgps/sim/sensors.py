@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from auxgps.core.events import Attitude, Gps1, Imu, Position
-from auxgps.core.geometry import LocalFrame
+from auxgps.core.geometry import LocalFrame, body_rates_from_euler_rates
 from auxgps.sim.flight import TelemetryNoiseConfig, Trajectory, sense_imu
 
 NO_FIX = 1
@@ -39,6 +39,17 @@ class Sensors:
             self._heading_err_rad = float(self._rng_heading.standard_normal() * self._heading_sigma_rad)
             self._heading_keep = float(np.exp(-self.imu_every * dt / noise.heading_error_tau_s))
 
+    def _rates_body(self, i: int) -> np.ndarray:
+        """The body's true rates (p, q, r) at step ``i``, rad/s, as the autopilot's gyros report them."""
+        traj = self.traj
+        j = min(i + 1, len(traj.t_s) - 1)
+        k = j - 1 if j > 0 else 0
+        if j == k:
+            return np.zeros(3)
+        d_euler = traj.euler_rad[j] - traj.euler_rad[k]
+        d_euler[2] = (d_euler[2] + np.pi) % (2.0 * np.pi) - np.pi
+        return body_rates_from_euler_rates(traj.euler_rad[k], d_euler / (traj.t_s[j] - traj.t_s[k]))
+
     def events_at(self, i: int) -> list:
         """What the autopilot sends at step ``i``: attitude before the IMU sample it rotates; GPS1 readings whose
         lag has passed."""
@@ -50,7 +61,7 @@ class Sensors:
                 k = self._heading_keep
                 self._heading_err_rad = k * self._heading_err_rad + np.sqrt(1.0 - k * k) * self._heading_sigma_rad * self._rng_heading.standard_normal()
                 euler = euler + np.array([0.0, 0.0, self._heading_err_rad])
-            out += [Attitude(t_imu, euler), Imu(t_imu, f_body)]
+            out += [Attitude(t_imu, euler, self._rates_body(i)), Imu(t_imu, f_body)]
         if i % self.baro_every == 0:
             alt = -traj.p_ned_m[i, 2] + noise.altitude_m * self.rng_tel.standard_normal()
             out.append(Position(t, np.nan, np.nan, np.nan, float(alt)))
