@@ -39,7 +39,8 @@ def flight_events(seed=3, denied_from_s=14.0, fps=3.0, half_m=3.0):
         events += [("feed", e) for e in sensors.events_at(i)]
         if i % frame_every == 0:
             pose = CameraPose(traj.p_ned_m[i].copy(), traj.R_ned_body(i) @ est.R_body_cam)
-            events.append(("frame", Frame(float(t), renderer.render(pose, sim.image_effects(), rng_img).image_bgr)))
+            image = renderer.render(pose, sim.image_effects(), rng_img).image_bgr
+            events.append(("frame", Frame(float(t), image, time_sigma_s=0.0)))  # stamped at the moment it shows
         if i % out_every == 0:
             events.append(("output", float(t)))
     return world, events, traj
@@ -50,14 +51,8 @@ def flight():
     return flight_events()
 
 
-#: These flights' frames are stamped with the very moment the simulator rendered them: the estimator is told so
-#: (``noise.frame_time_s`` is for a real camera's timestamps, which turn a frame taken in a turn by the turn rate
-#: times their error; this small survey turns often).
-SIM_PIPELINE = PipelineConfig(noise=dataclasses.replace(PipelineConfig().noise, frame_time_s=1e-3))
-
-
 def run(world, events):
-    est = Estimator(SIM_PIPELINE, frame=world.frame)
+    est = Estimator(PipelineConfig(), frame=world.frame)
     said = []
     for kind, e in events:
         if kind == "feed":
@@ -149,6 +144,12 @@ def test_a_frame_taken_while_turning_gets_a_wider_heading_sigma():
     assert turning["tilt_sigma_rad"] == pytest.approx(np.deg2rad(noise.attitude_deg))
     still = est._attitude_sigmas(FrameJob(Frame(0.05, np.zeros((2, 2, 3), np.uint8)), np.eye(3), 10.0, None, False, None))
     assert still["heading_sigma_rad"] == pytest.approx(np.deg2rad(noise.heading_deg))
+    # Past heading_deg / frame_time_s (25 deg/s) a frame is not located: every frame of the turn shares that error
+    why = est._turning_too_fast(Frame(0.05, np.zeros((2, 2, 3), np.uint8)), np.array([0.0, 0.0, rate]))
+    assert why is not None and why.startswith("turning at 60 deg/s")
+    assert est._turning_too_fast(Frame(0.05, np.zeros((2, 2, 3), np.uint8)), np.array([0.0, 0.0, np.deg2rad(20.0)])) is None
+    exact = Frame(0.05, np.zeros((2, 2, 3), np.uint8), time_sigma_s=0.0)  # stamped at the moment it shows
+    assert est._turning_too_fast(exact, np.array([0.0, 0.0, rate])) is None
 
 
 @pytest.mark.slow
@@ -158,7 +159,7 @@ def test_a_restart_without_gps1_starts_from_the_map_alone(flight):
     world, events, traj = flight
     first, _ = run(world, events)
     restart_s = 17.0
-    est = Estimator(SIM_PIPELINE, landmarks=first.landmarks, frame=world.frame)
+    est = Estimator(PipelineConfig(), landmarks=first.landmarks, frame=world.frame)
     acquired_s, outputs = None, []
     for kind, e in events:
         t = e if kind == "output" else e.t_s
@@ -218,7 +219,7 @@ def test_a_frozen_camera_gives_no_fix_and_is_said_once(flight):
     for kind, e in events:
         if kind == "frame" and 18.0 <= e.t_s < 21.0:
             stuck = stuck if stuck is not None else e.image_bgr
-            e = Frame(e.t_s, stuck)
+            e = dataclasses.replace(e, image_bgr=stuck)
         frozen.append((kind, e))
     est, said = run(world, frozen)
     results = [(e.t_s, r) for (kind, e), r in zip(frozen, said) if kind == "frame"]
@@ -240,7 +241,7 @@ def test_a_strap_sliding_over_the_lens_is_one_fault_in_the_events_log(flight):
         if kind == "frame" and 18.0 <= e.t_s < 21.0:
             image = e.image_bgr.copy()
             image[int(image.shape[0] * (0.55 - 0.1 * (e.t_s - 18.0))):] = 0
-            e = Frame(e.t_s, image)
+            e = dataclasses.replace(e, image_bgr=image)
         covered.append((kind, e))
     _, said = run(world, covered)
     results = [(e.t_s, r) for (kind, e), r in zip(covered, said) if kind == "frame"]
@@ -255,7 +256,7 @@ def test_a_lost_filter_fuses_again_only_once_a_run_of_fixes_lies_on_one_track():
     fix. Its gate is wide then, so the first fixes after are held back ("re-acquiring") until those of the last
     reinit_window_s span reinit_min_span_s on one track; then fixes are fused and GPS_INPUT has a 3D fix again."""
     world, events, _ = flight_events(half_m=4.5)
-    dark = [(kind, Frame(e.t_s, np.zeros_like(e.image_bgr)) if kind == "frame" and 15.0 <= e.t_s < 31.0 else e)
+    dark = [(kind, dataclasses.replace(e, image_bgr=np.zeros_like(e.image_bgr)) if kind == "frame" and 15.0 <= e.t_s < 31.0 else e)
             for kind, e in events]
     _, said = run(world, dark)
     after = [(e.t_s, r) for (kind, e), r in zip(dark, said) if kind == "frame" and e.t_s >= 31.0 and r.kind == "visual"]

@@ -451,15 +451,34 @@ class Estimator:
         the ground 10 m from the camera."""
         noise = self.cfg.noise
         rate = job.rate_ned_rad_s
-        tilt = np.hypot(np.deg2rad(noise.attitude_deg), np.hypot(rate[0], rate[1]) * noise.frame_time_s)
+        tilt = np.hypot(np.deg2rad(noise.attitude_deg), np.hypot(rate[0], rate[1]) * self._frame_time_s(job.frame))
         heading_var = np.deg2rad(noise.heading_deg) ** 2 + self._timing_heading_var(job)
         if job.heading is not None:
             heading_var += job.heading.sigma_rad**2
         return {"tilt_sigma_rad": float(tilt), "heading_sigma_rad": float(np.sqrt(heading_var))}
 
+    def _frame_time_s(self, frame: Frame) -> float:
+        """How far the frame's timestamp may be from the autopilot's clock, one sigma, s."""
+        return self.cfg.noise.frame_time_s if frame.time_sigma_s is None else frame.time_sigma_s
+
+    def _turning_too_fast(self, frame: Frame, rate_ned_rad_s: np.ndarray) -> str | None:
+        """Why a frame taken turning at ``rate_ned_rad_s`` is not located, or None. Past ``noise.heading_deg /
+        noise.frame_time_s`` (25 deg/s) the frame's timing makes its heading less certain than the telemetry's
+        noise does, and that error is the same for every frame of the turn (a camera's latency, a starved reader):
+        their fixes, each honest alone, would pull the filter together. A copter turns to its next leg at 45 to
+        70 deg/s for a second or two; the IMU carries it through. Mapping frames are mapped (their rays less
+        trusted): GPS1 places them."""
+        heading_deg = self.cfg.noise.heading_deg
+        rate_deg_s = abs(float(np.rad2deg(rate_ned_rad_s[2])))
+        dt_s = self._frame_time_s(frame)
+        if rate_deg_s * dt_s <= heading_deg:
+            return None
+        return (f"turning at {rate_deg_s:.0f} deg/s: the frame's timing ({dt_s * 1e3:g} ms) leaves its heading "
+                f"{rate_deg_s * dt_s:.1f} deg uncertain, more than the telemetry's {heading_deg:g}; not located")
+
     def _timing_heading_var(self, job: FrameJob) -> float:
         """What the frame's timestamp uncertainty makes of the heading's turn rate, rad^2."""
-        return float((job.rate_ned_rad_s[2] * self.cfg.noise.frame_time_s) ** 2)
+        return float((job.rate_ned_rad_s[2] * self._frame_time_s(job.frame)) ** 2)
 
     def _heading_at(self, t_s: float) -> HeadingEstimate | None:
         return self.heading.at(t_s) if self.heading is not None else None
@@ -494,6 +513,9 @@ class Estimator:
             return FrameResult(frame.t_s, "skipped", f"no {missing}")
         euler, rate_ned = self._attitude_at(frame.t_s)
         R = self._R_ned_body(euler, heading)
+        turning = None if self.supervisor.gps1_trusted else self._turning_too_fast(frame, rate_ned)
+        if turning is not None:
+            return FrameResult(frame.t_s, "none", turning)
         if self.filter is None:
             # No filter, no GPS1, a map: locate without a prior, to start the filter (acquisition)
             return FrameJob(frame, R, alt, None, False, None, heading=heading, rate_ned_rad_s=rate_ned)

@@ -58,10 +58,12 @@ class Position:
 
 @dataclass(frozen=True)
 class Frame:
-    """A camera image, BGR uint8 (H, W, 3), and its capture time, s."""
+    """A camera image, BGR uint8 (H, W, 3), its capture time, s, and how far that time may be from the autopilot's
+    clock, one sigma, s (None: the noise model's ``frame_time_s``; 0: exact, as the simulator's own frames are)."""
 
     t_s: float
     image_bgr: np.ndarray
+    time_sigma_s: float | None = None
 
 
 Telemetry = Attitude | Imu | Gps1 | Position

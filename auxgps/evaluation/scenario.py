@@ -167,7 +167,7 @@ def _fly(est: Estimator, su: _Setup, traj, sensors: Sensors, fps: float, *, late
                 image = faults.frame(t, image)  # None: the camera delivered no frame
             if image is not None:
                 t0 = time.perf_counter()
-                job = est.begin_frame(Frame(t, image))
+                job = est.begin_frame(Frame(t, image, time_sigma_s=0.0))  # rendered at the very moment it is stamped
                 if isinstance(job, FrameResult):
                     if job.note and notes is not None:
                         notes.append((job.t_s, job.note))
