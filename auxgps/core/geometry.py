@@ -91,6 +91,13 @@ def body_rates_from_euler_rates(euler_rad: np.ndarray, euler_rate_rad_s: np.ndar
     ])
 
 
+def euler_step_rad(euler_from_rad: np.ndarray, euler_to_rad: np.ndarray) -> np.ndarray:
+    """ZYX Euler angles (rad) less the ones before them, the heading's step taken the short way round."""
+    step = np.asarray(euler_to_rad, float) - np.asarray(euler_from_rad, float)
+    step[2] = (step[2] + np.pi) % (2 * np.pi) - np.pi
+    return step
+
+
 def _rotation(euler_rad: np.ndarray) -> Rotation:
     return Rotation.from_euler("ZYX", [euler_rad[2], euler_rad[1], euler_rad[0]])
 

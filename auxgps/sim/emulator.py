@@ -56,7 +56,7 @@ import numpy as np  # noqa: E402
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.quaternion import QuaternionBase  # noqa: E402
 
-from auxgps.core.geometry import LocalFrame, R_ned_body_from_euler, body_rates_from_euler_rates  # noqa: E402
+from auxgps.core.geometry import LocalFrame, R_ned_body_from_euler, body_rates_from_euler_rates, euler_step_rad  # noqa: E402
 from auxgps.errors import AuxGpsError  # noqa: E402
 from auxgps.io.mission import load_mission  # noqa: E402
 from auxgps.sim.flight import (  # noqa: E402
@@ -807,8 +807,7 @@ class VehicleSim:
         return drag
 
     def _set_motion(self, a_ned_m_s2: np.ndarray, euler_rad: np.ndarray) -> None:
-        euler_rate = np.array([*(euler_rad[:2] - self.euler_rad[:2]), _wrap_pi(euler_rad[2] - self.euler_rad[2])])
-        self.rates_body_rad_s = body_rates_from_euler_rates(euler_rad, euler_rate / self.dt_s)
+        self.rates_body_rad_s = body_rates_from_euler_rates(euler_rad, euler_step_rad(self.euler_rad, euler_rad) / self.dt_s)
         self.a_ned_m_s2, self.euler_rad = a_ned_m_s2, euler_rad
 
     def _ground_contact(self) -> None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from auxgps.core.events import Attitude, Gps1, Imu, Position
-from auxgps.core.geometry import LocalFrame, body_rates_from_euler_rates
+from auxgps.core.geometry import LocalFrame, body_rates_from_euler_rates, euler_step_rad
 from auxgps.sim.flight import TelemetryNoiseConfig, Trajectory, sense_imu
 
 NO_FIX = 1
@@ -46,8 +46,7 @@ class Sensors:
         k = j - 1 if j > 0 else 0
         if j == k:
             return np.zeros(3)
-        d_euler = traj.euler_rad[j] - traj.euler_rad[k]
-        d_euler[2] = (d_euler[2] + np.pi) % (2.0 * np.pi) - np.pi
+        d_euler = euler_step_rad(traj.euler_rad[k], traj.euler_rad[j])
         return body_rates_from_euler_rates(traj.euler_rad[k], d_euler / (traj.t_s[j] - traj.t_s[k]))
 
     def events_at(self, i: int) -> list:
