@@ -129,6 +129,8 @@ class PositioningConfig:
     max_hamming: Annotated[int, Field(ge=0, le=256)] = 64
     inlier_px: Positive = 4.0
     min_inliers: Annotated[int, Field(ge=2)] = 4
+    # Features this close (px at the detection scale) are one spot of the image, and one inlier.
+    same_point_px: NonNegative = 1.5
     # A frame is ambiguous when a second distinct reading's log-likelihood (about one unit per inlier) is
     # within this margin of the best one's.
     ambiguity_margin: NonNegative = 3.0

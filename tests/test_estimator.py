@@ -152,6 +152,35 @@ def test_a_frame_taken_while_turning_gets_a_wider_heading_sigma():
     assert est._turning_too_fast(exact, np.array([0.0, 0.0, rate])) is None
 
 
+def test_a_frame_between_two_attitude_samples_that_step_apart_is_not_used():
+    """Rolling at 30 deg/s with the rates reported, samples 20 ms apart differ by 0.6 deg and the frame between them is
+    used; a 3 deg step the rates do not explain (the busy emulator's copter did so, and a 13-inlier fix came out
+    0.47 m off) leaves the frame's tilt unknown, and it is not used. Sample noise (3 sqrt(2) attitude_deg) is not a
+    step."""
+    from auxgps.core.events import Attitude
+
+    frame = Frame(0.05, np.zeros((2, 2, 3), np.uint8))
+    rate = np.deg2rad(30.0)
+    turning = Estimator(PipelineConfig())
+    for k in range(6):
+        turning.feed(Attitude(0.02 * k, np.array([rate * 0.02 * k, 0.0, 0.3]), np.array([rate, 0.0, 0.0])))
+    assert turning._attitude_step_rad(0.05) == pytest.approx(0.0, abs=1e-6)
+    assert turning._attitude_stepped(0.05) is None
+
+    limit_rad = 3.0 * np.sqrt(2.0) * np.deg2rad(PipelineConfig().noise.attitude_deg)
+    for step_deg, used in ((0.8 * np.rad2deg(limit_rad), True), (3.0, False)):
+        est = Estimator(PipelineConfig())
+        for k in range(6):
+            roll = 0.0 if k <= 2 else np.deg2rad(step_deg)  # between 0.04 and 0.06 s
+            est.feed(Attitude(0.02 * k, np.array([roll, 0.01, 0.3]), np.zeros(3)))
+        assert est._attitude_step_rad(0.05) == pytest.approx(np.deg2rad(step_deg), rel=1e-3)
+        assert est._attitude_step_rad(0.03) == pytest.approx(0.0, abs=1e-9)  # the samples about it agree
+        why = est._attitude_stepped(frame.t_s)
+        assert (why is None) == used
+        if not used:
+            assert why.startswith("the attitude stepped 3.0 deg")
+
+
 @pytest.mark.slow
 def test_a_restart_without_gps1_starts_from_the_map_alone(flight):
     """A crash mid-flight with GPS1 jammed: a new estimator with the map the flight had and nothing else says no
@@ -340,3 +369,35 @@ def test_featureless_ground_is_said_once_it_has_lasted_a_second():
     said = [est._featureless_note(t, n) for t, n in frames]
     assert [k for k, line in enumerate(said) if line] == [4, 8], said
     assert said[4].startswith("featureless ground: ") and said[8].startswith("featureless ground over")
+
+
+def test_a_height_stuck_while_descending_is_not_fused_and_frames_take_the_filters_height():
+    """Descending at 0.5 m/s, the autopilot's height above home holds one value: none of its repeats is fused (a
+    descending vehicle's height changes every message), frames take the filter's height, which carries on down on the
+    IMU, and after 2 s it is named, once. The same repeats in a hover are a steady height: fused, not named."""
+    from auxgps.core.events import Attitude, Gps1, Imu, Position
+
+    def fly(vd_m_s: float, stuck_from_s: float, until_s: float):
+        est = Estimator(PipelineConfig())
+        notes, alt0_m = [], 20.0
+        for k in range(int(until_s * 50)):
+            t = 0.02 * k
+            est.feed(Attitude(t, np.zeros(3), np.zeros(3)))
+            est.feed(Imu(t + 0.001, np.array([0.0, 0.0, -9.80665])))
+            if k % 5 == 0:  # 10 Hz
+                alt_m = alt0_m - vd_m_s * min(t, stuck_from_s)
+                notes.append(est.feed(Position(t + 0.002, np.nan, np.nan, np.nan, round(alt_m, 3))))
+            if k % 10 == 0:  # 5 Hz
+                notes.append(est.feed(Gps1(t + 0.003, 3, 12, 47.0, 8.0, 400.0 + alt0_m - vd_m_s * t, 0.3)))
+        return est, [n for n in notes if n]
+
+    est, notes = fly(0.5, stuck_from_s=6.0, until_s=9.0)
+    assert est.filter is not None
+    stuck = [n for n in notes if "height above home stuck" in n]
+    assert len(stuck) == 1 and stuck[0].startswith("height above home stuck at 17.00 m for 2 s"), notes
+    truth_m = 20.0 - 0.5 * 9.0
+    assert est.alt_above_origin_m == pytest.approx(truth_m, abs=0.3)  # not the stuck 17.0 m
+    assert -est.filter.estimate().p_ned_m[2] == pytest.approx(truth_m, abs=0.3)
+
+    hover, notes = fly(0.0, stuck_from_s=6.0, until_s=9.0)
+    assert not any("stuck" in n for n in notes) and hover.alt_above_origin_m == pytest.approx(20.0, abs=1e-9)

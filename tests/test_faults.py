@@ -204,10 +204,18 @@ def test_a_gps1_dragged_while_mapping_is_found_mapping_stops_and_the_vehicle_lan
     # Landmarks are geotagged at the filter's position, which GPS_INPUT reports: GPS2's error from the drag's start
     # to its finding is the most drag any landmark can have in it (mapping stops as it is found).
     in_map = gps2_error_m([s for s in log["samples"] if s["t_s"] <= found[0]], drag_t_s)
-    err = gps2_error_m(log["samples"], found[0] + 2.0)
+    # "From the map" ends with the last accepted visual fix: below about 4.5 m over home's bare ground the camera
+    # sees no feature, and the last 9 to 10 s of the descent are dead reckoning on the IMU (0.6 to 1.1 m of drift
+    # so far, docs/faults.md). There GPS2 must be as honest as everywhere: inside the accuracy it reports.
+    last_fix_t_s = last_accepted_fix_t_s(tmp_path / "run", log)
+    err = gps2_error_m([s for s in log["samples"] if s["t_s"] <= last_fix_t_s], found[0] + 2.0)
+    out_err, out_acc = gps_input_errors_m(tmp_path / "run", log, after_t_s=found[0] + 2.0)
+    inside = float(np.mean(out_err <= 3 * out_acc))
     print(f"drag {speed_m_s} m/s: found {detected_after_s:.1f} s after it began, GPS1 then {speed_m_s * detected_after_s:.2f} m "
-          f"off, the filter that geotags landmarks at most {in_map.max():.2f} m; GPS2 after: {len(err)} samples, RMS "
-          f"{np.sqrt(np.mean(err ** 2)):.3f} m, max {err.max():.3f} m; landed {log['landing_error_m']:.2f} m from home")
+          f"off, the filter that geotags landmarks at most {in_map.max():.2f} m; GPS2 after, to the last visual fix "
+          f"{log['end_t_s'] - last_fix_t_s:.1f} s before the end: {len(err)} samples, RMS {np.sqrt(np.mean(err ** 2)):.3f} m, "
+          f"max {err.max():.3f} m; GPS_INPUT after, to the end: max {out_err.max():.3f} m, inside 3 sigma {inside:.3f}; "
+          f"landed {log['landing_error_m']:.2f} m from home")
     assert 0.0 < detected_after_s <= 10.0
     assert in_map.max() <= 1.0
     assert not mapping_after, mapping_after
@@ -215,9 +223,10 @@ def test_a_gps1_dragged_while_mapping_is_found_mapping_stops_and_the_vehicle_lan
         assert any(text.startswith("GPS1 dragged: GPS2 (auxgps) made primary") for _, text in events), events
         assert any(e["event"] == "primary_changed" and e["to"] == 1 for e in log["events"])
     assert np.sqrt(np.mean(err ** 2)) <= 0.3 and err.max() <= 1.0
+    assert inside >= 0.97
     # Home, not where the dragged GPS1 puts it (10 s of drag away); within 1 m is the busy flight's and the kill
     # flight's test: here the survey was flown offset by the drag until it was found, and the last metres of the
-    # descent see nothing mapped (the terrain issue's "coming home to land"): 0.27 to 0.95 m so far.
+    # descent see nothing mapped (the terrain issue's "coming home to land"): 0.27 to 1.14 m so far.
     assert log["landing_error_m"] <= max(1.0, 0.5 * 10.0 * speed_m_s)
     assert not any(e["event"] == "failsafe" for e in log["events"])
 
@@ -259,6 +268,14 @@ def visual_fix_errors_m(run_dir: Path, log: dict) -> np.ndarray:
     return np.array(out)
 
 
+def last_accepted_fix_t_s(run_dir: Path, log: dict) -> float:
+    """The capture time of the last visual fix auxgps accepted, emulated s."""
+    pairs = np.array(log["monotonic_clock"])
+    with open(run_dir / "fixes.csv") as f:
+        t = [float(r["t_s"]) for r in csv.DictReader(f) if r["kind"] == "visual" and r["accepted"] == "True"]
+    return float(np.interp(max(t), pairs[:, 1], pairs[:, 0]))
+
+
 def gps2_unhealthy_s(samples: list[dict]) -> float:
     """How long GPS2 was unhealthy or without a 3D fix after it first became healthy, to the landing, emulated s."""
     first = next(k for k, s in enumerate(samples) if s["gps2_healthy"] and s["gps2_fix"] >= 3)
@@ -298,9 +315,11 @@ def test_beside_two_busy_processes_gps2_stays_healthy_and_the_vehicle_lands_home
     assert not any(e["event"] == "failsafe" for e in log["events"])
 
 
-def gps_input_errors_m(run_dir: Path, log: dict, delay_s: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
-    """The horizontal error of each GPS_INPUT with a 3D fix that auxgps sent, against the emulator's truth
-    ``delay_s`` (auxgps run's --gps-delay-ms) before it was sent, and the accuracy it reported, m."""
+def gps_input_errors_m(run_dir: Path, log: dict, delay_s: float = 0.1,
+                       after_t_s: float = -np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """The horizontal error of each GPS_INPUT with a 3D fix that auxgps sent (after ``after_t_s``, emulated s),
+    against the emulator's truth ``delay_s`` (auxgps run's --gps-delay-ms) before it was sent, and the accuracy it
+    reported, m."""
     from auxgps.core.geometry import LocalFrame
 
     frame = LocalFrame(**log["origin"])
@@ -313,12 +332,29 @@ def gps_input_errors_m(run_dir: Path, log: dict, delay_s: float = 0.1) -> tuple[
             if row["fix_type"] != "3":
                 continue
             t_emu = float(np.interp(float(row["t_s"]) - delay_s, pairs[:, 1], pairs[:, 0]))
-            if t_emu > t[-1]:
+            if t_emu > t[-1] or t_emu < after_t_s:
                 continue
             p = frame.to_ned(lat_deg=float(row["lat_deg"]), lon_deg=float(row["lon_deg"]), alt_amsl_m=frame.alt_amsl_m)
             err.append(float(np.hypot(p[0] - np.interp(t_emu, t, truth[:, 0]), p[1] - np.interp(t_emu, t, truth[:, 1]))))
             acc.append(float(row["horiz_accuracy_m"]))
     return np.array(err), np.array(acc)
+
+
+def assert_named_once_and_honest(run_dir: Path, log: dict, named: str, label: str) -> None:
+    """An emulator flight with one fault injected: auxgps's events log names it once (a line containing ``named``),
+    no accepted visual fix is over 0.5 m, its GPS_INPUT is inside 3 sigma for at least 97 % of the outputs, and the
+    vehicle landed without a failsafe. Prints the figures under ``label``."""
+    said = [r["text"] for r in csv.DictReader(open(run_dir / "events.csv")) if named in r["text"]]
+    fixes = visual_fix_errors_m(run_dir, log)
+    err, acc = gps_input_errors_m(run_dir, log)
+    inside = float(np.mean(err <= 3 * acc))
+    print(f"{label}: {said}; {len(fixes)} accepted fixes, max {fixes.max():.3f} m; GPS_INPUT 3D {len(err)}, "
+          f"RMS {np.sqrt(np.mean(err ** 2)):.3f} m, max {err.max():.3f} m, inside 3 sigma {inside:.3f}; GPS2 unhealthy "
+          f"{gps2_unhealthy_s(log['samples']):.1f} s; landed {log['landing_error_m']:.2f} m from home")
+    assert len(said) == 1, said
+    assert len(fixes) > 100 and fixes.max() <= 0.5
+    assert inside >= 0.97
+    assert not any(e["event"] == "failsafe" for e in log["events"])
 
 
 @pytest.mark.flight
@@ -334,14 +370,22 @@ def test_an_autopilot_reboot_mid_flight_is_named_and_survived(tmp_path):
                                   str(faults)], [])
     assert log["exit_reason"] == "landed", (tmp_path / "run" / "run.log").read_text()[-2000:]
     assert any(e["event"] == "rebooted" for e in log["events"])
-    said = [r["text"] for r in csv.DictReader(open(tmp_path / "run" / "events.csv")) if "autopilot rebooted" in r["text"]]
-    fixes = visual_fix_errors_m(tmp_path / "run", log)
-    err, acc = gps_input_errors_m(tmp_path / "run", log)
-    inside = float(np.mean(err <= 3 * acc))
-    print(f"autopilot reboot: {said}; {len(fixes)} accepted fixes, max {fixes.max():.3f} m; GPS_INPUT 3D {len(err)}, "
-          f"RMS {np.sqrt(np.mean(err ** 2)):.3f} m, max {err.max():.3f} m, inside 3 sigma {inside:.3f}; GPS2 unhealthy "
-          f"{gps2_unhealthy_s(log['samples']):.1f} s; landed {log['landing_error_m']:.2f} m from home")
-    assert len(said) == 1
-    assert len(fixes) > 100 and fixes.max() <= 0.5
-    assert inside >= 0.97
-    assert not any(e["event"] == "failsafe" for e in log["events"])
+    assert_named_once_and_honest(tmp_path / "run", log, "autopilot rebooted", "autopilot reboot")
+
+
+@pytest.mark.flight
+@pytest.mark.flight_extra
+def test_a_height_stuck_in_the_descent_is_named_once_and_survived(tmp_path):
+    """78 s after take-off, GPS1 long lost and the vehicle descending home at 0.5 m/s, the emulated autopilot's
+    height above home holds one value for 6 s (in level flight a stuck height is a steady one: nothing to name).
+    auxgps names it once and does not fuse it; its GPS_INPUT stays honest: no accepted fix over 0.5 m, inside 3
+    sigma for at least 97 % of the outputs; the vehicle lands without a failsafe."""
+    faults = tmp_path / "stuck.yaml"
+    faults.write_text("faults:\n  - {kind: height_stuck, at_s: 78, for_s: 6}\n")
+    log = fly_emulator(tmp_path, ["--survey-size", "8", "--fail-gps1-at", "15", "--max-seconds", "600", "--faults",
+                                  str(faults)], [])
+    assert log["exit_reason"] == "landed", (tmp_path / "run" / "run.log").read_text()[-2000:]
+    began_t_s = next(e["t_s"] for e in log["events"] if e["event"] == "fault" and e["kind"] == "height_stuck")
+    phase = next(s["phase"] for s in log["samples"] if s["t_s"] >= began_t_s)
+    assert phase == "descend", f"the fault began in the {phase} phase, not the descent: move at_s"
+    assert_named_once_and_honest(tmp_path / "run", log, "height above home stuck", "height stuck in the descent")

@@ -271,7 +271,10 @@ class Estimator:
         self.frame_check = FrameCheck()
         self._last_t_of: dict[type, float] = {}  # the newest time of each telemetry kind (duplicates, order)
         self._telemetry_fault_t: dict[str, float] = {}  # fault -> when last seen, for one events line per episode
-        self._height_same_since: tuple[float, float] | None = None  # (value, since when) of a repeating height
+        # (value, since when, vertical speed then) of the latest height; and whether it now repeats while the vehicle
+        # was climbing or descending when it came (a height that cannot be right: not fused, frames take the filter's)
+        self._height_same_since: tuple[float, float, float] | None = None
+        self._height_suspect = False
         self._attitude_lost = False
         self._pending_note: str | None = None  # said with the next finished frame
         self._frame_fault: str | None = None  # the camera fault in force (its kind), for the events log
@@ -321,9 +324,12 @@ class Estimator:
 
     @property
     def alt_above_origin_m(self) -> float | None:
-        """The latest height above the local origin, m (None before a height and an origin are known)."""
+        """The latest height above the local origin, m (None before a height and an origin are known); the
+        filter's own while the autopilot's is stuck (repeating while the vehicle climbs or descends)."""
         if self._alt_above_home_m is None or self._home_above_origin_m is None:
             return None
+        if self._height_suspect and self.filter is not None:
+            return -float(self.filter.estimate().p_ned_m[2])
         return self._alt_above_home_m + self._home_above_origin_m
 
     def _on_imu(self, rec: Imu) -> None:
@@ -345,13 +351,19 @@ class Estimator:
         same = self._height_same_since
         if same is not None and rec.alt_above_home_m == same[0]:
             # The autopilot's height is its EKF's, which holds one value to the millimetre in a steady hover: a
-            # repeat is a fault only while the filter (the IMU) says the vehicle climbs or descends.
-            vd = abs(float(self.filter.estimate().v_ned_m_s[2])) if self.filter is not None else 0.0
-            if rec.t_s - same[1] >= self.options.height_stuck_s and vd > self.options.height_stuck_min_vd_m_s:
-                return self._telemetry_fault(f"height above home stuck at {same[0]:.2f} m for "
-                                             f"{self.options.height_stuck_s:g} s: not fused", rec.t_s)
+            # repeat is a fault only when the vehicle was climbing or descending as the value came (0.3 m/s is 6 mm
+            # between two messages at 50 Hz). Judged on the speed then, not now: a stuck height fused for a second
+            # would have slowed the filter's own vertical speed below the threshold, and the fault would pass.
+            if abs(same[2]) > self.options.height_stuck_min_vd_m_s:
+                self._height_suspect = True
+                if rec.t_s - same[1] >= self.options.height_stuck_s:
+                    return self._telemetry_fault(f"height above home stuck at {same[0]:.2f} m for "
+                                                 f"{self.options.height_stuck_s:g} s: not fused", rec.t_s)
+                return None
         else:
-            self._height_same_since = (rec.alt_above_home_m, rec.t_s)
+            vd = float(self.filter.estimate().v_ned_m_s[2]) if self.filter is not None else 0.0
+            self._height_same_since = (rec.alt_above_home_m, rec.t_s, vd)
+            self._height_suspect = False
         self._alt_above_home_m = rec.alt_above_home_m
         alt = self.alt_above_origin_m
         if self.filter is not None and alt is not None:
@@ -425,6 +437,15 @@ class Estimator:
             k -= 1
         return atts[k]
 
+    def _attitudes_around(self, t_s: float) -> tuple[Attitude, Attitude] | None:
+        """The samples just before and at or after ``t_s``, when both exist and are at most
+        ``2 * max_attitude_age_s`` apart (the span an attitude is interpolated across); else None."""
+        atts = self._attitudes
+        k = bisect.bisect_left(atts, t_s, key=lambda a: a.t_s)
+        if 0 < k < len(atts) and 0.0 < atts[k].t_s - atts[k - 1].t_s <= 2.0 * self.options.max_attitude_age_s:
+            return atts[k - 1], atts[k]
+        return None
+
     def _attitude_at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """The attitude at ``t_s`` (ZYX Euler, rad) and the body's turn rate then (rad/s, NED axes).
 
@@ -432,17 +453,43 @@ class Estimator:
         comes before the attitude after it), the newest turned on at its own body rates for up to
         ``max_attitude_age_s``; else the nearest sample. The rate is the nearest sample's own (the autopilot's
         gyros, not a difference of two attitudes, whose noise would pass for a turn); zero without one."""
-        atts = self._attitudes
         near = self._nearest_attitude(t_s)
-        k = bisect.bisect_left(atts, t_s, key=lambda a: a.t_s)
+        around = self._attitudes_around(t_s)
         rate_body = near.rate_body_rad_s if near.rate_body_rad_s is not None else np.zeros(3)
-        if 0 < k < len(atts) and 0.0 < atts[k].t_s - atts[k - 1].t_s <= 2.0 * self.options.max_attitude_age_s:
-            euler = attitude_between(t_s, atts[k - 1].t_s, atts[k - 1].euler_rad, atts[k].t_s, atts[k].euler_rad)
+        if around is not None:
+            a, b = around
+            euler = attitude_between(t_s, a.t_s, a.euler_rad, b.t_s, b.euler_rad)
         elif t_s > near.t_s:
             euler = attitude_turned(near.euler_rad, rate_body, min(t_s - near.t_s, self.options.max_attitude_age_s))
         else:
             euler = near.euler_rad
         return euler, R_ned_body_from_euler(*euler) @ rate_body
+
+    def _attitude_step_rad(self, t_s: float) -> float:
+        """How far the tilt of the attitude sample after ``t_s`` is from the one before it turned on at their gyro
+        rates, rad: a change the rates do not explain (a vehicle jolted, a message lost between them), so the frame's
+        tilt between the two is not known to the telemetry's noise. 0 without two samples about ``t_s`` with rates."""
+        around = self._attitudes_around(t_s)
+        if around is None or around[0].rate_body_rad_s is None or around[1].rate_body_rad_s is None:
+            return 0.0
+        a, b = around
+        dt_s = b.t_s - a.t_s
+        carried = attitude_turned(a.euler_rad, 0.5 * (a.rate_body_rad_s + b.rate_body_rad_s), dt_s)
+        R = R_ned_body_from_euler(*carried).T @ R_ned_body_from_euler(*b.euler_rad)  # the rest of the turn, body axes
+        return float(np.hypot(R[2, 1] - R[1, 2], R[0, 2] - R[2, 0]) / 2.0)  # its roll and pitch parts (small angles)
+
+    def _attitude_stepped(self, t_s: float) -> str | None:
+        """Why a frame at ``t_s`` is not used because its attitude is unknown between two samples, or None.
+
+        Two samples each off by ``noise.attitude_deg`` differ by up to 3 sqrt(2) times that without a cause;
+        beyond, the frame's tilt could be either sample's (a 1.7 deg error is 0.45 m on the ground from 15 m, at
+        any inlier count: the busy emulator flight whose copter's tilt stepped 3.65 deg in 20 ms made such a fix)."""
+        step_deg = float(np.rad2deg(self._attitude_step_rad(t_s)))
+        limit_deg = 3.0 * np.sqrt(2.0) * self.cfg.noise.attitude_deg
+        if step_deg <= limit_deg:
+            return None
+        return (f"the attitude stepped {step_deg:.1f} deg between the telemetry samples around the frame, beyond their "
+                f"gyro rates and their noise ({limit_deg:.2f} deg): its tilt is unknown; not used")
 
     def _attitude_sigmas(self, job: FrameJob) -> dict[str, float]:
         """How far a frame's attitude may be off, one sigma, rad (``tilt_sigma_rad``, ``heading_sigma_rad``): the
@@ -511,6 +558,9 @@ class Estimator:
         if not self._attitudes or alt is None or (self.filter is None and (not len(self.landmarks) or self.supervisor.gps1_trusted)):
             missing = "filter (no GPS1 fix yet)" if self.filter is None else "attitude" if not self._attitudes else "height"
             return FrameResult(frame.t_s, "skipped", f"no {missing}")
+        stepped = self._attitude_stepped(frame.t_s)
+        if stepped is not None:
+            return FrameResult(frame.t_s, "none", stepped)
         euler, rate_ned = self._attitude_at(frame.t_s)
         R = self._R_ned_body(euler, heading)
         turning = None if self.supervisor.gps1_trusted else self._turning_too_fast(frame, rate_ned)

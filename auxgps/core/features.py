@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from auxgps.errors import FrameError
@@ -211,15 +213,34 @@ def pairs_within(a_px: np.ndarray, b_px: np.ndarray, radius_px: float) -> tuple[
     return i[order].astype(np.int64), j[order].astype(np.int64)
 
 
+#: Up to this many pairs, :func:`greedy_one_to_one` takes them one by one; beyond, in rounds of array work. Each
+#: round costs about 0.5 ms however short the list, the loop about 0.3 us a pair (1000 pairs: 0.9 ms in rounds,
+#: 0.3 ms by the loop; 20 000: 7.4 and 8.9 ms). A reading's members are tens to hundreds of pairs.
+GREEDY_LOOP_MAX_PAIRS = 5000
+
+
 def greedy_one_to_one(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The positions of the pairs ``(a[k], b[k])``, taken in order, that a greedy one-to-one assignment keeps (a
     pair is kept unless an earlier kept pair has its ``a`` or its ``b``), ascending.
 
-    In rounds rather than pair by pair: a pair that is the first remaining one of both its ``a`` and its ``b`` is
-    kept by the sequential greedy too (everything before it that shares either was dropped for a kept pair
-    still earlier), so each round keeps all such pairs and drops the pairs they block; the first remaining pair
-    always qualifies. The same pairs as the loop, in a few rounds of array work.
+    A short list pair by pair; a long one (over ``GREEDY_LOOP_MAX_PAIRS``) in rounds: a pair that is the first
+    remaining one of both its ``a`` and its ``b`` is kept by the sequential greedy too (everything before it that
+    shares either was dropped for a kept pair still earlier), so each round keeps all such pairs and drops the
+    pairs they block; the first remaining pair always qualifies. The same pairs either way.
     """
+    if len(a) <= GREEDY_LOOP_MAX_PAIRS:
+        used_a, used_b, kept_k = set(), set(), []
+        for k, (x, y) in enumerate(zip(np.asarray(a).tolist(), np.asarray(b).tolist())):
+            if x not in used_a and y not in used_b:
+                used_a.add(x)
+                used_b.add(y)
+                kept_k.append(k)
+        return np.array(kept_k, np.int64)
+    return _greedy_one_to_one_in_rounds(np.asarray(a), np.asarray(b))
+
+
+def _greedy_one_to_one_in_rounds(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """:func:`greedy_one_to_one` in rounds of array work, for long lists."""
     def first_of_each(x: np.ndarray) -> np.ndarray:
         first = np.zeros(len(x), bool)
         first[np.unique(x, return_index=True)[1]] = True
@@ -233,3 +254,14 @@ def greedy_one_to_one(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         kept.append(k[keep])
         k = k[~(np.isin(ak, ak[keep]) | np.isin(bk, bk[keep]))]
     return np.sort(np.concatenate(kept)) if kept else np.zeros(0, np.int64)
+
+
+def spots(feature_tree: cKDTree, radius_px: float) -> np.ndarray:
+    """(N,) an id per feature, shared by features within ``radius_px`` of each other (chained): one spot of the
+    image, which is one point of the ground however many pyramid levels found it."""
+    pairs = feature_tree.query_pairs(radius_px, output_type="ndarray")
+    n = feature_tree.n
+    if not len(pairs):
+        return np.arange(n)
+    graph = coo_matrix((np.ones(len(pairs), bool), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]

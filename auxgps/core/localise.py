@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from auxgps.core.camera import CameraPose, PinholeCamera
-from auxgps.core.features import Features, greedy_one_to_one, hamming, pairs_within
+from auxgps.core.features import Features, greedy_one_to_one, hamming, pairs_within, spots
 from auxgps.core.geometry import cross_matrix
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.stopwatch import null_stopwatch
@@ -141,6 +141,7 @@ class _View:
     alt_above_origin_m: float
     cand_in_cam_axes_m: np.ndarray
     prior_info: np.ndarray  # (6, 6) what the refinement knows beforehand (height, attitude), 1/m^2 and 1/rad^2
+    point_id: np.ndarray  # (N,) per feature: features on one spot of the image (one corner found twice) share it
 
 
 @dataclass(frozen=True)
@@ -297,7 +298,8 @@ class Localiser:
                 prior_info[3, 3] = prior_info[4, 4] = 1.0 / max(tilt_sigma_rad, 1e-6) ** 2
             if heading_sigma_rad is not None:
                 prior_info[5, 5] = 1.0 / max(heading_sigma_rad, 1e-6) ** 2
-        view = _View(features, feature_tree, R_ned_cam, alt_above_origin_m, p_cand_ned_m @ R_ned_cam, prior_info)
+        view = _View(features, feature_tree, R_ned_cam, alt_above_origin_m, p_cand_ned_m @ R_ned_cam, prior_info,
+                     spots(feature_tree, cfg.same_point_px / features.scale))
         verdict = self._choose(corr, view, prior, seeds, support, min_inliers, margin)
         if isinstance(verdict, tuple):  # ambiguous: the reason and how far apart the rivals are
             return NoFix(t_s, verdict[0], best_support, n_corr, n_feat, rivals_apart_m=verdict[1])
@@ -387,9 +389,9 @@ class Localiser:
         return _spread_by_rivals(best, readings, ll)
 
     def _reading(self, corr: _Correspondences, view: _View, seed: int) -> _Reading:
-        """Refine the hypothesis of correspondence ``seed`` over its members (one per feature) and score it."""
+        """Refine the hypothesis of correspondence ``seed`` over its members (one per spot of the image) and score it."""
         dist2 = cdist(corr.hyp, corr.hyp[seed][None], "sqeuclidean")[:, 0]  # as _consensus measures: the same members
-        inl = self._one_to_one(dist2 <= np.square(corr.tau), corr.feat_i, corr.lm_id, dist2)
+        inl = self._one_to_one(dist2 <= np.square(corr.tau), view.point_id[corr.feat_i], corr.lm_id, dist2)
         fit = self._refine(np.array([*corr.hyp[seed], -view.alt_above_origin_m]), corr, inl, view.alt_above_origin_m, 1.0 / view.features.scale,
                            view.prior_info)
         explained = self._explained_share(fit.p, view)
@@ -536,14 +538,15 @@ class Localiser:
         return np.unpackbits(votes, axis=1, count=len(seeds)).sum(axis=0)
 
     @staticmethod
-    def _one_to_one(member_row: np.ndarray, feat_i: np.ndarray, lm_id: np.ndarray, dist2: np.ndarray) -> np.ndarray:
+    def _one_to_one(member_row: np.ndarray, point_i: np.ndarray, lm_id: np.ndarray, dist2: np.ndarray) -> np.ndarray:
         """Boolean (K,) keeping the member correspondences closest to the hypothesis (``dist2``: squared distances
-        to it), one per feature and one per landmark: two features on one landmark (a corner found twice, on two
-        pyramid levels) are one measurement of it, not two."""
-        keep = np.zeros(len(feat_i), bool)
+        to it), one per image point (``point_i``: a feature's spot, :func:`~auxgps.core.features.spots`) and one per landmark: two
+        features on one landmark (a corner found twice, on two pyramid levels) are one measurement of it, not
+        two; nor are two landmarks of one corner (mapped twice, from both of its features) seen at one spot."""
+        keep = np.zeros(len(point_i), bool)
         idx = np.flatnonzero(member_row)
         order = idx[np.argsort(dist2[idx], kind="stable")]
-        keep[order[greedy_one_to_one(feat_i[order], lm_id[order])]] = True
+        keep[order[greedy_one_to_one(point_i[order], lm_id[order])]] = True
         return keep
 
     def _refine(self, p0: np.ndarray, corr: _Correspondences, inl: np.ndarray, alt_above_origin_m: float, pixel_size: float = 1.0,

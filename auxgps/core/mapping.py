@@ -12,9 +12,10 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from auxgps.core.camera import PinholeCamera
-from auxgps.core.features import Features, greedy_one_to_one, hamming, pairs_within
+from auxgps.core.features import Features, greedy_one_to_one, hamming, pairs_within, spots
 from auxgps.core.geometry import intersect_rays_with_horizontal_plane
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.retag import HeadingView
@@ -116,8 +117,17 @@ class Mapper:
             ids_out[matched_feat] = matched_lm
 
         # Unmatched features become new landmarks on the ground plane, their height free within a few metres
-        # (initial_height_sigma_m) until views from elsewhere fix it.
+        # (initial_height_sigma_m) until views from elsewhere fix it. One per spot of the image (features within
+        # positioning.same_point_px, a corner found on two pyramid levels), and none on a spot that fed a landmark:
+        # a second landmark of one corner lets a frame that finds it twice count it twice.
         new = np.setdiff1d(np.arange(n), matched_feat)
+        radius_px = self.cfg.positioning.same_point_px / features.scale
+        if len(new) and radius_px > 0:
+            spot = spots(cKDTree(features.uv_px, balanced_tree=False, compact_nodes=False), radius_px)
+            fed = np.zeros(n, bool)
+            fed[spot[matched_feat]] = True
+            new = new[~fed[spot[new]]]
+            new = new[np.sort(np.unique(spot[new], return_index=True)[1])]
         p0, valid = intersect_rays_with_horizontal_plane(c, rays[new], 0.0)
         new, p0 = new[valid], p0[valid]
         n_added = 0
