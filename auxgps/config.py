@@ -179,6 +179,13 @@ class FusionConfig:
     # A frame found ambiguous (two readings some distance apart) casts doubt on the fixes of the ground around it
     # for this long: theirs is widened by that distance (the ground that looks alike is still in view).
     ambiguity_memory_s: NonNegative = 2.0
+    # A visual fix whose sigma is over this many times the filter's own sigma of it (both RMS per axis, the fix's
+    # widened as above) is not fused: it would take under 1 / (1 + ratio^2) off the filter's variance (a tenth at
+    # 3), and it is the fix a wrong timing or a look-alike has moved furthest. When fixes stay wide (a descent onto
+    # plain ground, a high flight) the filter's sigma grows until they help again. 0: every fix is offered to the gate.
+    # In a busy emulator flight the fixes over 3 times the filter's are a tenth, their sigma 0.46 m median (over
+    # 2: a third, 0.08 m median, ordinary fixes; docs/faults.md).
+    max_fix_sigma_ratio: NonNegative = 3.0
     history_s: Annotated[float, Field(gt=0, le=5)] = 0.5
     reinit_count: Annotated[int, Field(ge=2)] = 5
     reinit_window_s: Positive = 3.0

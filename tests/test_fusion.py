@@ -147,6 +147,35 @@ def test_isolated_wrong_fix_does_not_move_the_filter():
     assert np.allclose(f.estimate().p_ned_m, before, atol=1e-12)
 
 
+
+def test_a_fix_far_wider_than_the_filter_is_not_fused_until_the_filter_has_grown_as_wide():
+    """Visual fixes of 5 cm at 10 a second, then one of 0.5 m sigma 0.6 m off (a look-alike's reading, honest about
+    its doubt): beside the filter's own sigma it would add little and move the estimate most, so it is refused and
+    the estimate stays. After 20 s on the IMU alone the filter is as unsure as it, and the same fix is fused."""
+    cfg = FusionConfig()
+    f = make(cfg, sigma_p=0.1, sigma_v=0.05)
+    t = 0.0
+    for k in range(100):
+        t += 0.1
+        for j in range(10):
+            f.propagate(hover(t - 0.1 + 0.01 * (j + 1)))
+        assert f.update_position(t, np.zeros(2), np.eye(2) * 0.05**2, visual=True).accepted
+    before = f.estimate().p_ned_m.copy()
+    wide = f.update_position(t, np.array([0.6, 0.0]), np.eye(2) * 0.5**2, visual=True)
+    assert not wide.accepted and wide.reason.startswith("too wide to help")
+    assert wide.fix_sigma_m == pytest.approx(0.5) and wide.fix_sigma_m > cfg.max_fix_sigma_ratio * wide.filter_sigma_m
+    assert np.array_equal(f.estimate().p_ned_m, before)
+    assert f.update_position(t, np.array([0.6, 0.0]), np.eye(2) * 0.5**2, visual=True, reinit=False).mahalanobis2 == wide.mahalanobis2
+    for k in range(2000):
+        t += 0.01
+        f.propagate(hover(t))
+    later = f.update_position(t, np.array([0.6, 0.0]), np.eye(2) * 0.5**2, visual=True)
+    assert later.accepted and later.filter_sigma_m * cfg.max_fix_sigma_ratio >= 0.5
+    assert f.estimate().p_ned_m[0] > before[0] + 0.05
+    off = FusionConfig(max_fix_sigma_ratio=0.0)  # 0: every fix goes to the gate
+    g = make(off, sigma_p=0.01, sigma_v=0.01)
+    assert g.update_position(0.0, np.array([0.6, 0.0]), np.eye(2) * 0.5**2, visual=True).accepted
+
 @pytest.mark.parametrize(
     "imu,why",
     [

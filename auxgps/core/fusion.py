@@ -128,6 +128,8 @@ class GateDecision:
     mahalanobis2: float
     reason: str
     rejected_run: bool = False
+    fix_sigma_m: float = np.nan  # the fix's one sigma as offered (RMS per axis), m
+    filter_sigma_m: float = np.nan  # the filter's one sigma of what the fix measures, before it (RMS per axis), m
 
 
 class NavFilter:
@@ -186,15 +188,21 @@ class NavFilter:
             return self._decide(GateDecision(t_s, False, np.nan, f"fix {self.t_s - t_s:.3f} s old, older than the history"))
         self._carry_to(float(t_s))
         H = _H_ne(t_s - self.t_s, visual, prior_share)
-        S = H @ self._ekf.P @ H.T + cov_ne_m2
+        cov_pred_m2 = H @ self._ekf.P @ H.T
+        S = cov_pred_m2 + cov_ne_m2
         y = p_ne_m - (H @ self._ekf.x)[:, 0]
         m2 = float(y @ np.linalg.solve(S, y))
-        if m2 <= self.cfg.gate_chi2:
+        sigmas = dict(fix_sigma_m=float(np.sqrt(np.trace(cov_ne_m2) / 2.0)), filter_sigma_m=float(np.sqrt(np.trace(cov_pred_m2) / 2.0)))
+        ratio = self.cfg.max_fix_sigma_ratio
+        if visual and ratio > 0 and sigmas["fix_sigma_m"] > ratio * sigmas["filter_sigma_m"]:
+            decision = GateDecision(t_s, False, m2, f"too wide to help: sigma {sigmas['fix_sigma_m']:.3f} m, the filter's "
+                                                    f"{sigmas['filter_sigma_m']:.3f} m", **sigmas)
+        elif m2 <= self.cfg.gate_chi2:
             self._take("position", t_s, (p_ne_m, cov_ne_m2, visual, prior_share))
             self._rejected_run.clear()
-            decision = GateDecision(t_s, True, m2, "accepted")
+            decision = GateDecision(t_s, True, m2, "accepted", **sigmas)
         else:
-            decision = GateDecision(t_s, False, m2, f"innovation {np.sqrt(m2):.1f} sigma")
+            decision = GateDecision(t_s, False, m2, f"innovation {np.sqrt(m2):.1f} sigma", **sigmas)
             self._rejected_run.append((t_s, p_ne_m, cov_ne_m2, prior_share))
             if self._rejected_run_agrees(self.cfg.reinit_min_span_s if visual else 0.0):
                 self._rejected_run.clear()
@@ -202,9 +210,9 @@ class NavFilter:
                     self._take("reinit", t_s, (p_ne_m, cov_ne_m2, prior_share))
                     self.n_reinit += 1
                     log.warning("filter re-initialised at t=%.3f s on %d consistent rejected fixes", t_s, self.cfg.reinit_count)
-                    decision = GateDecision(t_s, False, m2, "re-initialised on a run of consistent rejected fixes", True)
+                    decision = GateDecision(t_s, False, m2, "re-initialised on a run of consistent rejected fixes", True, **sigmas)
                 else:
-                    decision = GateDecision(t_s, False, m2, "a run of consistent rejected fixes (not re-initialised)", True)
+                    decision = GateDecision(t_s, False, m2, "a run of consistent rejected fixes (not re-initialised)", True, **sigmas)
         self._retake(later)
         return self._decide(decision)
 
