@@ -176,6 +176,21 @@ def test_a_fix_far_wider_than_the_filter_is_not_fused_until_the_filter_has_grown
     g = make(off, sigma_p=0.01, sigma_v=0.01)
     assert g.update_position(0.0, np.array([0.6, 0.0]), np.eye(2) * 0.5**2, visual=True).accepted
 
+
+def test_a_filter_loosened_by_what_it_followed_takes_the_fix_that_says_so():
+    """A filter held at the origin by GPS readings that were dragged 0.7 m (found by the map): a true fix 0.7 m
+    away is refused by its gate; loosened by the drag seen (GPS1 found dragged), it takes the fix at once and says
+    how unsure it is until then."""
+    f, _ = _fixes_jumping_5_m(20, visual=False)
+    t = f.t_s
+    assert not f.update_position(t, np.array([0.7, 0.0]), np.eye(2) * 0.05**2, visual=True, reinit=False).accepted
+    seen = np.array([0.7, 0.0])
+    assert f.loosen(t, np.outer(seen, seen), np.outer(seen, seen) / 10.0**2)
+    assert f.estimate().cov_p_m2[0, 0] >= 0.7**2 and f.estimate().cov_v_m2_s2[0, 0] >= 0.07**2
+    assert f.update_position(t, np.array([0.7, 0.0]), np.eye(2) * 0.05**2, visual=True).accepted
+    assert f.estimate().p_ned_m[0] == pytest.approx(0.7, abs=0.05)
+    assert not f.loosen(t - 1.0, np.eye(2), np.eye(2))  # older than the history
+
 @pytest.mark.parametrize(
     "imu,why",
     [

@@ -699,6 +699,7 @@ class Estimator:
             drag = self.supervisor.visual_check(res.t_s, d_ne - s * b_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2], shared)
             if drag:
                 common["note"] = _joined(common["note"], drag, self._undo_unverified(res.t_s))
+                self._loosen_by_drag(res.t_s)
             elif s > 0:
                 self.filter.learn_map_offset(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2], s)
             return FrameResult(t, "self-check", f"{d:.3f} m", self_check_m=d, **common)
@@ -791,6 +792,18 @@ class Estimator:
         shift_sigma_m = float(np.sqrt(self.cfg.heading.gps_relative_m**2 + 2.0 * tilt_m**2))
         self.heading.observe_view(MotionView(job.frame.t_s, c[:2], ids[sel][order], g[order]), shift_sigma_m,
                                   0.5 * np.deg2rad(noise.heading_deg) ** 2 + self._timing_heading_var(job))
+
+    def _loosen_by_drag(self, t_s: float) -> None:
+        """GPS1 found dragged at ``t_s``: the filter followed it, so it is off by what the self-checks saw (in
+        position) and by that over the time since GPS1 last agreed with the map (in velocity). Its covariance is
+        widened by as much: GPS_INPUT says so, and the map's fixes bring it back at once, not after a run of
+        them rejected by its gate."""
+        seen = self.supervisor.drag_seen_ne_m
+        if seen is None:
+            return
+        since = self.supervisor.last_agreement_t_s
+        span_s = float(np.clip(t_s - since, 1.0, 30.0)) if since is not None else 30.0
+        self.filter.loosen(t_s, np.outer(seen, seen), np.outer(seen, seen) / span_s**2)
 
     def _undo_unverified(self, t_s: float) -> str | None:
         """GPS1 found dragged at ``t_s``: put the map back as it was when the last agreeing self-check could vouch

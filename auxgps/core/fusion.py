@@ -73,7 +73,7 @@ class _Step:
     """One step the filter took, kept for replay after a late measurement.
 
     ``t_s``: the time the step describes (its order in the history); ``t_state_s``: the state's time after it (the
-    last IMU sample's); ``kind``: "imu", "position", "altitude" or "reinit"; ``data``: what re-applies it.
+    last IMU sample's); ``kind``: "imu", "position", "altitude", "reinit", "offset", "gap" or "loosen"; ``data``: what re-applies it.
     ``x``, ``P``: the state after it.
     """
 
@@ -215,6 +215,21 @@ class NavFilter:
                     decision = GateDecision(t_s, False, m2, "a run of consistent rejected fixes (not re-initialised)", True, **sigmas)
         self._retake(later)
         return self._decide(decision)
+
+    def loosen(self, t_s: float, cov_p_ne_m2: np.ndarray, cov_v_ne_m2_s2: np.ndarray) -> bool:
+        """Add these covariances to the horizontal position and velocity at ``t_s``: what the filter has learnt
+        from a source found wrong since (GPS1 dragged, by as much as the map says). False if ``t_s`` is older
+        than the history."""
+        cov_p, cov_v = np.asarray(cov_p_ne_m2, float).reshape(2, 2), np.asarray(cov_v_ne_m2_s2, float).reshape(2, 2)
+        if not (np.all(np.isfinite(cov_p)) and np.all(np.isfinite(cov_v))):
+            return False
+        later = self._rewind(float(t_s))
+        if later is None:
+            return False
+        self._carry_to(float(t_s))
+        self._take("loosen", float(t_s), (cov_p, cov_v))
+        self._retake(later)
+        return True
 
     def learn_map_offset(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray, prior_share: float) -> bool:
         """While GPS1 holds the position: a visual fix with ``prior_share`` of its inliers from the prior map says
@@ -422,6 +437,9 @@ class NavFilter:
             self._learn_offset(t_s, *data)
         elif kind == "gap":
             self._carry_across_gap(t_s)
+        elif kind == "loosen":
+            self._ekf.P[0:2, 0:2] += data[0]
+            self._ekf.P[3:5, 3:5] += data[1]
         else:
             raise ValueError(f"unknown filter step {kind!r}")
         self._history.append(_Step(t_s, self.t_s, kind, data, self._ekf.x.copy(), self._ekf.P.copy()))

@@ -110,6 +110,7 @@ class Supervisor:
         self._h_acc_trusted: list[float] = []  # GPS1's reported accuracy while trusted, m (the latest h_acc_history)
         self.trusted_since_s: float | None = None  # when GPS1 last became trusted
         self.last_agreement_t_s: float | None = None  # the last self-check run whose mean was within drag_m / 2
+        self.drag_seen_ne_m: np.ndarray | None = None  # the mean self-check (the map's fix less the filter) that found GPS1 dragged, m
 
     def _degraded(self, sample: Gps1Sample) -> str | None:
         """Why GPS1's report is not good enough to trust (None: it is)."""
@@ -217,6 +218,7 @@ class Supervisor:
             self.last_agreement_t_s = t_s
         if float(np.linalg.norm(mean)) <= cfg.drag_m or m2 <= cfg.agree_chi2:
             return None
+        self.drag_seen_ne_m = mean
         return self._distrust_as_dragged(t_s, f"GPS1 drifts {np.linalg.norm(mean):.1f} m from map: distrusted, no mapping "
                                               f"(mean of the last {n} self-checks; spoofing or a failing receiver?)")
 
