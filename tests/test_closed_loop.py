@@ -16,9 +16,9 @@ REPO = Path(__file__).resolve().parent.parent
 WORLD = str(REPO / "config" / "worlds" / "cubes4_0.5m_different.yaml")
 
 
-def start_emulator(port: int, log: Path, *options: str) -> subprocess.Popen:
+def start_emulator(port: int, log: Path, *options: str, world: str = WORLD) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "auxgps.sim.emulator", "--world", WORLD, "--port", str(port), "--log", str(log), *options],
+        [sys.executable, "-m", "auxgps.sim.emulator", "--world", world, "--port", str(port), "--log", str(log), *options],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )
 
