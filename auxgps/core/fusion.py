@@ -73,8 +73,8 @@ class _Step:
     """One step the filter took, kept for replay after a late measurement.
 
     ``t_s``: the time the step describes (its order in the history); ``t_state_s``: the state's time after it (the
-    last IMU sample's); ``kind``: "imu", "position", "altitude", "reinit", "offset", "gap" or "loosen"; ``data``: what re-applies it.
-    ``x``, ``P``: the state after it.
+    last IMU sample's); ``kind``: "imu", "position", "altitude", "reinit", "offset", "gap" or "loosen"; ``data``:
+    what re-applies it. ``x``, ``P``: the state after it.
     """
 
     t_s: float
@@ -223,13 +223,7 @@ class NavFilter:
         cov_p, cov_v = np.asarray(cov_p_ne_m2, float).reshape(2, 2), np.asarray(cov_v_ne_m2_s2, float).reshape(2, 2)
         if not (np.all(np.isfinite(cov_p)) and np.all(np.isfinite(cov_v))):
             return False
-        later = self._rewind(float(t_s))
-        if later is None:
-            return False
-        self._carry_to(float(t_s))
-        self._take("loosen", float(t_s), (cov_p, cov_v))
-        self._retake(later)
-        return True
+        return self._take_in_order("loosen", float(t_s), (cov_p, cov_v))
 
     def learn_map_offset(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray, prior_share: float) -> bool:
         """While GPS1 holds the position: a visual fix with ``prior_share`` of its inliers from the prior map says
@@ -238,13 +232,7 @@ class NavFilter:
         share = float(np.clip(prior_share, 0.0, 1.0))
         if self.map_offset_sigma_m <= 0 or share <= 0 or not (np.all(np.isfinite(p_ne_m)) and np.all(np.isfinite(cov_ne_m2))):
             return False
-        later = self._rewind(float(t_s))
-        if later is None:
-            return False
-        self._carry_to(float(t_s))
-        self._take("offset", float(t_s), (np.asarray(p_ne_m, float).reshape(2), np.asarray(cov_ne_m2, float).reshape(2, 2), share))
-        self._retake(later)
-        return True
+        return self._take_in_order("offset", float(t_s), (np.asarray(p_ne_m, float).reshape(2), np.asarray(cov_ne_m2, float).reshape(2, 2), share))
 
     def _learn_offset(self, t_s: float, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray, share: float) -> None:
         x, P = self._ekf.x, self._ekf.P
@@ -266,13 +254,9 @@ class NavFilter:
         if not (np.isfinite(t_s) and np.isfinite(alt_above_origin_m) and np.isfinite(sigma_m) and sigma_m > 0):
             log.warning("altitude sample at t=%.3f s rejected: not finite", t_s)
             return False
-        later = self._rewind(t_s)
-        if later is None:
+        if not self._take_in_order("altitude", t_s, (float(alt_above_origin_m), float(sigma_m))):
             log.warning("altitude sample at t=%.3f s rejected: older than the history", t_s)
             return False
-        self._carry_to(float(t_s))
-        self._take("altitude", t_s, (float(alt_above_origin_m), float(sigma_m)))
-        self._retake(later)
         return True
 
     # -- outputs -------------------------------------------------------------------------------------------
@@ -404,6 +388,17 @@ class NavFilter:
     def _last_not_after(self, t_s: float) -> int:
         """Index of the last history step not later than ``t_s`` (-1 when the history starts after it)."""
         return bisect.bisect_right(self._history, t_s, key=lambda s: s.t_s) - 1
+
+    def _take_in_order(self, kind: str, t_s: float, data: tuple) -> bool:
+        """Take one step at ``t_s`` in time order: back to the state then, carried to ``t_s``, the step, then the
+        later steps again. False (nothing taken) when ``t_s`` is older than the history."""
+        later = self._rewind(t_s)
+        if later is None:
+            return False
+        self._carry_to(t_s)
+        self._take(kind, t_s, data)
+        self._retake(later)
+        return True
 
     def _rewind(self, t_s: float) -> list[_Step] | None:
         """Restore the state after the last step not later than ``t_s``; return the later steps, to be taken

@@ -4,9 +4,9 @@ for its replay, so that the two can be compared line by line.
 Files in the log folder, flushed per row (a crash loses nothing written):
 
 - ``fixes.csv``: per frame that reached positioning: time, kind ("none", "self-check", "visual"), the reason or
-  gate decision, inliers, squared Mahalanobis distance, accepted, latitude and longitude (deg), one-sigma (m), the sigma
-  it was offered to the filter with (widened after an ambiguous frame) and the filter's own sigma of it before (m),
-  and the map the fix used (``flight``, or a prior map's file name: the source most of its inliers come from);
+  gate decision, inliers, squared Mahalanobis distance, accepted, latitude and longitude (deg), one-sigma (m), the
+  sigma it was offered to the filter with (``offered_sigma_m``, widened after an ambiguous frame) and the filter's
+  own sigma of it before (``filter_sigma_m``), m, and the map the fix used (``flight``, or a prior map's file name: the source most of its inliers come from);
 - ``gps_input.csv``: per GPS_INPUT: time, fix type, latitude, longitude (deg), altitude AMSL and horizontal
   accuracy (m), satellites, auxgps's mode;
 - ``events.csv``: time, text and the autopilot's boot time of each status line, fault and GPS1 disagreement (the
@@ -68,13 +68,13 @@ class FlightLog(CsvLog):
         n = loc.n_inliers if loc is not None else ""
         if res.kind == "none" or frame is None:
             self.row("fixes", t_s=res.t_s, kind="none", reason=res.reason, n=f"{n}", m2="", accepted="", lat_deg="", lon_deg="", sigma_m="",
-                     fused_sigma_m="", filter_sigma_m="", map="")
+                     offered_sigma_m="", filter_sigma_m="", map="")
             return
         lat_deg, lon_deg, _ = frame.to_geodetic(loc.p_ned_m)
         d = res.decision
         self.row("fixes", t_s=res.t_s, kind=res.kind, reason=res.reason, n=n, m2=f"{d.mahalanobis2:.2f}" if d else "",
                  accepted=d.accepted if d else "", lat_deg=float(lat_deg), lon_deg=float(lon_deg), sigma_m=round(loc.sigma_h_rms_m, 3),
-                 fused_sigma_m=_rounded(d.fix_sigma_m if d else np.nan), filter_sigma_m=_rounded(d.filter_sigma_m if d else np.nan),
+                 offered_sigma_m=_rounded(d.fix_sigma_m if d else np.nan), filter_sigma_m=_rounded(d.filter_sigma_m if d else np.nan),
                  map=loc.map_source)
 
     def output(self, out: Output) -> None:
