@@ -17,7 +17,8 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from auxgps import replay
 from auxgps.core import fusion
-from auxgps.sim.flight import TelemetryNoiseConfig, imu_bias
+from auxgps.sim.emulator import emulated_imu_bias
+from auxgps.sim.flight import TelemetryNoiseConfig
 
 
 def main() -> None:
@@ -51,7 +52,7 @@ def main() -> None:
     R_used = np.array([s[2] for s in window])
     bias_est = np.array([s[3] for s in window])
     R_true = Slerp(t_truth, Rotation.from_euler("ZYX", np.array([x.euler_rad for x in truth])[:, ::-1]))(t).as_matrix()
-    bias_true = imu_bias(TelemetryNoiseConfig(), np.random.default_rng(np.random.SeedSequence(args.seed).spawn(5)[4]))
+    bias_true = emulated_imu_bias(TelemetryNoiseConfig(), args.seed)
 
     def v_truth(at_s: float) -> np.ndarray:  # a line through 0.2 s of truth either side
         k = np.searchsorted(t_truth, at_s)

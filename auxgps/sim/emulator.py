@@ -82,6 +82,17 @@ MAV = mavutil.mavlink
 log = logging.getLogger("vehicle_emulator")
 
 
+
+def _generators(seed: int) -> list[np.random.Generator]:
+    """The emulator's random generators for ``seed``: physics, GPS1, barometer, telemetry, accelerometer bias."""
+    return [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)]
+
+
+def emulated_imu_bias(noise: TelemetryNoiseConfig, seed: int) -> np.ndarray:
+    """The accelerometer bias (body axes, m/s^2) the emulator flies with for ``seed`` and ``noise``: what an
+    analysis of its flight compares the filter's estimate with."""
+    return imu_bias(noise, _generators(seed)[4])
+
 class EmulatorError(AuxGpsError):
     """A bad emulator argument, or the port cannot be served."""
 
@@ -541,10 +552,7 @@ class VehicleSim:
         self.noise: TelemetryNoiseConfig = cfg.noise
         self.dt_s = cfg.dt_s
         self.survey = survey_config(options, cfg.mapping)
-        seeds = np.random.SeedSequence(options.seed).spawn(5)
-        self._rng_physics, self._rng_gps1, self._rng_baro, self.rng_telemetry, rng_bias = (
-            np.random.default_rng(s) for s in seeds
-        )
+        self._rng_physics, self._rng_gps1, self._rng_baro, self.rng_telemetry, rng_bias = _generators(options.seed)
         self.imu_bias_body_m_s2 = imu_bias(self.noise, rng_bias)
         self.step_index = 0
         self.craft = Multirotor(self.vehicle, np.zeros(3), 0.0, self.dt_s)
