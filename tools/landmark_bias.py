@@ -4,9 +4,12 @@ landmarks positioning can use, near each of the mission's waypoints, after an `a
 
     .venv/bin/python tools/landmark_bias.py --world config/worlds/seneca.yaml \\
         --mission config/missions/seneca_out_and_back.waypoints --alt-m 40 --gps-lost-at-waypoint 3 --seed 1 \\
-        [--config PIPELINE.yaml] [--radius-m 25]
+        [--config PIPELINE.yaml] [--sim-config SIM.yaml] [--radius-m 25]
 
 A shared offset over a region (not the spread of single landmarks) is what moves every fix made there alike.
+Then the same landmarks by how many times they were seen: their mean height error against the height sigma their
+own covariance claims (views counted are not views apart: at 10 frames a second a landmark seen 11 times was
+seen over a second of flight).
 """
 import argparse
 
@@ -15,7 +18,7 @@ import numpy as np
 from auxgps.config import PipelineConfig, load_pipeline_config
 from auxgps.evaluation import scenario as S
 from auxgps.io.mission import load_mission
-from auxgps.sim.flight import SimConfig, mission_waypoints_ned
+from auxgps.sim.flight import load_sim_config, mission_waypoints_ned
 from auxgps.sim.world import load_world
 
 
@@ -30,6 +33,7 @@ def main() -> None:
     ap.add_argument("--fps", type=float, default=10.0)
     ap.add_argument("--config", default=None)
     ap.add_argument("--radius-m", type=float, default=25.0)
+    ap.add_argument("--sim-config", default=None, help="simulation config YAML (default: built-in defaults)")
     a = ap.parse_args()
     cfg = load_pipeline_config(a.config) if a.config else PipelineConfig()
     kept = {}
@@ -41,7 +45,7 @@ def main() -> None:
 
     S._MapTruth.errors = keep
     world, mission = load_world(a.world), load_mission(a.mission)
-    S.run_mission(world, mission, a.alt_m, a.speed_m_s, a.gps_lost_at_waypoint, a.fps, a.seed, cfg, SimConfig())
+    S.run_mission(world, mission, a.alt_m, a.speed_m_s, a.gps_lost_at_waypoint, a.fps, a.seed, cfg, load_sim_config(a.sim_config))
     est, truth = kept["est"], kept["truth"]
     lm, m = est.landmarks, cfg.mapping
     seen = np.flatnonzero((lm.n_seen[: len(lm)] >= m.min_seen) & (lm.source[: len(lm)] == 0))
@@ -56,6 +60,14 @@ def main() -> None:
             e = err[near]
             print(f"  path point {k}: at N {w[0]:7.1f} E {w[1]:7.1f}: {near.sum():5d} landmarks, mean N {e[:, 0].mean():+.3f} "
                   f"E {e[:, 1].mean():+.3f} D {e[:, 2].mean():+.3f}, median horizontal {np.median(np.linalg.norm(e[:, :2], axis=1)):.3f}")
+    n_seen = lm.n_seen[used].astype(int)
+    sigma_d = np.sqrt(lm.covariance(used)[:, 2, 2])
+    print("by times seen (D: down, m; the height sigma is what the landmark's covariance claims):")
+    for lo, hi in [(0, 20), (20, 40), (40, 80), (80, None)]:
+        k = (n_seen >= lo) & (n_seen < (hi or np.iinfo(int).max))
+        if k.any():
+            print(f"  seen {lo:3d} to {hi or 'more':>4}: {k.sum():6d} landmarks, mean D {err[k, 2].mean():+.3f}, "
+                  f"median horizontal {np.median(np.linalg.norm(err[k, :2], axis=1)):.3f}, median height sigma {np.median(sigma_d[k]):.3f}")
 
 
 if __name__ == "__main__":
