@@ -6,7 +6,7 @@
 A camera 40 m up flies past a ground point 10 m to its side; each view's ray direction has white noise of
 ``--sigma-mrad`` per axis (the emulator's 0.2 deg of tilt and a pixel, 3.8 mrad). The point is solved as the
 mapper solves it (``auxgps.core.mapping.ray_information``: the projector across each ray over the ray's
-sigma squared, summed, with the 3 m ground-plane prior of a new landmark), and the mean error printed for
+sigma squared, summed, with a new landmark's ground-plane prior, ``mapping.initial_height_sigma_m``), and the mean error printed for
 baselines of 9 to 44 m. The closest point to noisy rays lies toward the cameras: the smaller the parallax, the
 more (docs/missions.md). ``--corrected`` takes ``2 s^2 d d^T`` off each ray's projector, which removes the
 bias's expectation to first order.
@@ -15,6 +15,7 @@ import argparse
 
 import numpy as np
 
+from auxgps.config import MappingConfig
 from auxgps.core.mapping import ray_information
 
 
@@ -35,7 +36,7 @@ def mean_error(n_views: int, baseline_m: float, sigma_rad: float, corrected: boo
         if corrected:
             A -= (2.0 * sigma_rad**2 / (range_m * sigma_rad) ** 2)[:, None, None] * d[:, :, None] * d[:, None, :]
         info = A.sum(axis=0)
-        info[2, 2] += 1.0 / 3.0**2  # a new landmark's height prior about the ground plane (at the truth here)
+        info[2, 2] += 1.0 / MappingConfig().initial_height_sigma_m**2  # a new landmark's height prior (ground at the truth here)
         errors[k] = np.linalg.solve(info, np.einsum("kij,kj->i", A, cams)) - point
     return errors.mean(axis=0), float(errors[:, 2].std())
 

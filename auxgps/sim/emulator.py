@@ -82,7 +82,6 @@ MAV = mavutil.mavlink
 log = logging.getLogger("vehicle_emulator")
 
 
-
 def _generators(seed: int) -> list[np.random.Generator]:
     """The emulator's random generators for ``seed``: physics, GPS1, barometer, telemetry, accelerometer bias."""
     return [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)]
@@ -92,6 +91,7 @@ def emulated_imu_bias(noise: TelemetryNoiseConfig, seed: int) -> np.ndarray:
     """The accelerometer bias (body axes, m/s^2) the emulator flies with for ``seed`` and ``noise``: what an
     analysis of its flight compares the filter's estimate with."""
     return imu_bias(noise, _generators(seed)[4])
+
 
 class EmulatorError(AuxGpsError):
     """A bad emulator argument, or the port cannot be served."""
