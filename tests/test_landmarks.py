@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from auxgps.core.landmarks import GridIndex, LandmarkMap
+from auxgps.core.mapping import ray_bias_terms, ray_information
 
 
 def random_map(n, rng, spread_m=60.0, capacity=16):
@@ -235,3 +236,61 @@ def test_an_undo_forgets_the_views_of_what_it_put_back():
     assert len(lm.recent_views) == len(ids)
     lm.roll_back(0.5)
     assert len(lm.recent_views) == 0 and np.all(lm.recent_views.rows(ids) < 0)
+
+
+def _triangulate(rng, cameras_ned_m, point_ned_m, sigma_rad, height_sigma_m=3.0):
+    """A landmark placed as the mapper places it: on the ground plane with a loose height from the first noisy ray,
+    then every further noisy ray fused. Returns the map holding it (id 0)."""
+    lm = LandmarkMap()
+    for k, c in enumerate(cameras_ned_m):
+        d = point_ned_m - c
+        t = np.linalg.norm(d)
+        d = d / t
+        e = np.cross(d, rng.normal(size=3))  # a random direction across the ray
+        d = d + sigma_rad * rng.normal() * e / np.linalg.norm(e) + sigma_rad * rng.normal() * np.cross(d, e / np.linalg.norm(e))
+        d /= np.linalg.norm(d)
+        sigma_perp = np.array([t * sigma_rad])
+        A = ray_information(d[None], sigma_perp)
+        bias = ray_bias_terms(d[None], np.array([t]), np.array([sigma_rad]), sigma_perp)
+        if k == 0:
+            A[:, 2, 2] += 1.0 / height_sigma_m**2
+            p0 = c + d * (point_ned_m[2] - c[2]) / d[2]  # on the true ground plane
+            lm.add(np.zeros((1, 32), np.uint8), p0[None], A, np.ones(1), ray_bias=bias)
+        else:
+            lm.observe(np.array([0]), A, np.einsum("nij,j->ni", A, c), np.zeros((1, 32), np.uint8), np.ones(1), np.zeros(1),
+                       ray_bias=bias)
+    return lm
+
+
+def test_the_triangulation_bias_model_expects_what_noisy_rays_do_to_a_landmark_seen_from_a_short_baseline():
+    """Eleven views over 9 m from 40 m, 3.8 mrad of noise on each ray: the fused point lies toward the cameras
+    (up), and triangulation_bias_m expects about as much; over 40 m of baseline, neither is more than 3 cm."""
+    rng = np.random.default_rng(3)
+    point = np.array([0.0, 0.0, 0.0])
+    for baseline_m, check in [(9.0, "short"), (40.0, "wide")]:
+        cameras = np.column_stack([np.linspace(-baseline_m / 2, baseline_m / 2, 11), np.full(11, 3.0), np.full(11, -40.0)])
+        err, expected = [], []
+        for _ in range(400):
+            lm = _triangulate(rng, cameras, point, 3.8e-3)
+            err.append(lm.p_ned_m[0].astype(float) - point)
+            expected.append(lm.triangulation_bias_m(np.array([0]))[0])
+        err_d, expected_d = np.mean(err, axis=0)[2], np.mean(expected, axis=0)[2]
+        if check == "short":
+            assert err_d < -0.1  # too high: toward the cameras, by 0.2 m (tools/triangulation_bias.py)
+            assert 0.6 < expected_d / err_d < 1.3, (expected_d, err_d)
+        else:
+            assert abs(err_d) < 0.03 and abs(expected_d) < 0.03, (expected_d, err_d)
+
+
+def test_the_expected_bias_counts_in_the_variance_across_a_ray_and_only_across_it():
+    rng = np.random.default_rng(4)
+    cameras = np.column_stack([np.linspace(-4.5, 4.5, 11), np.zeros(11), np.full(11, -40.0)])
+    lm = _triangulate(rng, cameras, np.zeros(3), 3.8e-3)
+    ids = np.array([0])
+    b = lm.triangulation_bias_m(ids)[0]
+    along = b / np.linalg.norm(b)
+    across = np.cross(along, [1.0, 0.0, 0.0])
+    across /= np.linalg.norm(across)
+    for d, grows_by in [(along, 0.0), (across, 0.5 * float(b @ b))]:
+        var = lm.variance_across_rays_m2(ids, d[None], with_bias=False)[0]
+        assert lm.variance_across_rays_m2(ids, d[None])[0] == pytest.approx(var + grows_by, rel=1e-6, abs=1e-12)

@@ -56,6 +56,22 @@ def test_version_2_file_is_read_with_unknown_descriptor_ranges(tmp_path):
     assert np.all(np.isnan(back.descriptor_range_m[: len(lm)]))
 
 
+def test_the_expected_bias_sums_are_saved_and_an_older_file_expects_none(tmp_path):
+    lm = some_map()
+    n = len(lm)
+    lm.ray_bias_sum[:n] = np.random.default_rng(2).normal(size=(n, 3))
+    save_map(tmp_path / "m.npz", lm, FRAME)
+    back, _ = load_map(tmp_path / "m.npz")
+    assert np.array_equal(back.ray_bias_sum[:n], lm.ray_bias_sum[:n])
+    with np.load(tmp_path / "m.npz") as data:
+        arrays = {k: data[k] for k in data.files if k != "ray_bias_sum"}
+    meta = json.loads(str(arrays.pop("meta")))
+    meta["version"] = 4
+    np.savez(tmp_path / "v4.npz", meta=np.array(json.dumps(meta)), **arrays)
+    old, _ = load_map(tmp_path / "v4.npz")
+    assert np.array_equal(old.p_ned_m[:n], lm.p_ned_m[:n]) and not np.any(old.ray_bias_sum[:n])
+
+
 def test_truncated_file_is_one_clear_error(tmp_path):
     save_map(tmp_path / "m.npz", some_map(), FRAME)
     data = (tmp_path / "m.npz").read_bytes()

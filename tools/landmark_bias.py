@@ -62,12 +62,14 @@ def main() -> None:
                   f"E {e[:, 1].mean():+.3f} D {e[:, 2].mean():+.3f}, median horizontal {np.median(np.linalg.norm(e[:, :2], axis=1)):.3f}")
     n_seen = lm.n_seen[used].astype(int)
     sigma_d = np.sqrt(lm.covariance(used)[:, 2, 2])
-    print("by times seen (D: down, m; the height sigma is what the landmark's covariance claims):")
+    bias = lm.triangulation_bias_m(used)
+    print("by times seen (D: down, m; the height sigma is what the landmark's covariance claims, the model D what "
+          "LandmarkMap.triangulation_bias_m expects):")
     for lo, hi in [(0, 20), (20, 40), (40, 80), (80, None)]:
         k = (n_seen >= lo) & (n_seen < (hi or np.iinfo(int).max))
         if k.any():
             print(f"  seen {lo:3d} to {hi or 'more':>4}: {k.sum():6d} landmarks, mean D {err[k, 2].mean():+.3f}, "
-                  f"median horizontal {np.median(np.linalg.norm(err[k, :2], axis=1)):.3f}, median height sigma {np.median(sigma_d[k]):.3f}")
+                  f"median horizontal {np.median(np.linalg.norm(err[k, :2], axis=1)):.3f}, median height sigma {np.median(sigma_d[k]):.3f}, model D {bias[k, 2].mean():+.3f}")
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ import numpy as np
 from auxgps.core.features import DESCRIPTOR_BYTES
 from auxgps.core.geometry import pack_sym, unpack_sym
 from auxgps.core.prior_map import FLIGHT, MapSource, main_source, shared_sigma_h_m
-from auxgps.core.retag import HeadingView, RecentViews, turned
+from auxgps.core.retag import HeadingView, RecentViews, turned_vectors, turned
 
 
 class GridIndex:
@@ -150,13 +150,13 @@ class LandmarkMap:
     GROWTH = 1.5
     #: The per-landmark arrays, in the order of the map file (``t_first_s`` is not saved: see :meth:`from_columns`).
     COLUMNS = ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "descriptor_range_m", "chi2_mean", "n_visible",
-               "source", "t_first_s")
+               "source", "t_first_s", "ray_bias_sum")
     #: Columns a map file may lack, and what they are then.
-    OPTIONAL = {"t_first_s": -np.inf, "source": 0}
+    OPTIONAL = {"t_first_s": -np.inf, "source": 0, "ray_bias_sum": 0.0}
     #: chi2_mean of a landmark :meth:`demote` took out of use (no view agreement is that bad).
     DEMOTED_CHI2 = np.float16(60000.0)
     #: What :meth:`observe` changes, and :meth:`count_visible`: what the journal keeps of each before the change.
-    OBSERVED = ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "descriptor_range_m", "chi2_mean")
+    OBSERVED = ("descriptors", "p_ned_m", "info_packed", "n_seen", "view_cos", "descriptor_range_m", "chi2_mean", "ray_bias_sum")
     COUNTED = ("n_visible",)
 
     def __init__(self, capacity: int = 1024, index: GridIndex | None = None, descriptor_bytes: int = DESCRIPTOR_BYTES) -> None:
@@ -178,6 +178,10 @@ class LandmarkMap:
         # the flight uses to position but never refines (their error is the source's, shared by all of them).
         self.source = np.zeros(capacity, np.uint8)
         self.sources: list[MapSource] = [FLIGHT]
+        # Sum over its views of 2 s^2 t d / sigma^2 (s: a view's angular sigma, t its range, d its unit ray, sigma
+        # its cross-ray sigma), 1/m: what makes the closest point to noisy rays lie toward the cameras (see
+        # :meth:`triangulation_bias_m`). Zero for a prior map's landmarks and those of a map file.
+        self.ray_bias_sum = np.zeros((capacity, 3), np.float32)
         # This flight's recent views, for :meth:`turn` (not saved: a loaded map's landmarks are not turned).
         self.recent_views = RecentViews()
         self._journal: deque[tuple[float, np.ndarray, dict[str, np.ndarray]]] | None = None
@@ -193,7 +197,8 @@ class LandmarkMap:
         out: a map file's landmarks were first seen before this process); ``capacity``: rows to allocate (at least
         that number); ``sources``: what the ``source`` column's numbers name (default: this flight alone)."""
         n_rows = len(columns["n_seen"]) if "n_seen" in columns else 0
-        columns = {**{k: np.full(n_rows, v, np.float32) for k, v in cls.OPTIONAL.items()}, **columns}
+        columns = {**{k: np.full((n_rows, 3) if k == "ray_bias_sum" else n_rows, v, np.float32) for k, v in cls.OPTIONAL.items()},
+                   **columns}
         missing = [name for name in cls.COLUMNS if name not in columns]
         if missing:
             raise ValueError(f"landmark columns missing: {', '.join(missing)}")
@@ -314,9 +319,11 @@ class LandmarkMap:
             setattr(self, name, new)
 
     def add(self, descriptors: np.ndarray, p_ned_m: np.ndarray, info: np.ndarray, view_cos: np.ndarray,
-            descriptor_range_m: np.ndarray | float = np.nan, t_first_s: float = -np.inf, view: HeadingView | None = None) -> np.ndarray:
+            descriptor_range_m: np.ndarray | float = np.nan, t_first_s: float = -np.inf, view: HeadingView | None = None,
+            ray_bias: np.ndarray | None = None) -> np.ndarray:
         """Append landmarks seen once (at ``t_first_s``). info (M, 3, 3) 1/m^2. Returns their ids (M,). ``view``:
-        the heading correction they were geotagged with, and from where (for :meth:`turn`)."""
+        the heading correction they were geotagged with, and from where (for :meth:`turn`); ``ray_bias`` (M, 3)
+        1/m: the view's term of :attr:`ray_bias_sum` (None: none)."""
         m = len(descriptors)
         self._grow(self._n + m)
         ids = np.arange(self._n, self._n + m)
@@ -330,6 +337,7 @@ class LandmarkMap:
         self.n_visible[ids] = 1
         self.t_first_s[ids] = t_first_s
         self.source[ids] = 0
+        self.ray_bias_sum[ids] = 0.0 if ray_bias is None else ray_bias
         self._n += m
         if view is not None and np.isfinite(t_first_s):
             self.recent_views.note(ids, info, t_first_s, view)
@@ -343,6 +351,7 @@ class LandmarkMap:
     def observe(
         self, ids: np.ndarray, A_obs: np.ndarray, b_obs: np.ndarray, descriptors: np.ndarray, view_cos: np.ndarray, chi2: np.ndarray,
         descriptor_range_m: np.ndarray | float = np.nan, t_s: float | None = None, view: HeadingView | None = None,
+        ray_bias: np.ndarray | None = None,
     ) -> None:
         """Fuse one observation into each landmark in ``ids`` (unique).
 
@@ -350,7 +359,8 @@ class LandmarkMap:
         ``chi2`` (M,) is its squared Mahalanobis innovation, averaged into the landmark's consistency. The
         landmark keeps the descriptor of its most nadir view, and that view's ``descriptor_range_m``. ``t_s``: when
         it was seen, for the journal (None: not journalled); ``view``: the heading correction the observation was
-        geotagged with, and from where (for :meth:`turn`; only landmarks of this flight keep it).
+        geotagged with, and from where (for :meth:`turn`; only landmarks of this flight keep it); ``ray_bias`` (M,
+        3) 1/m: the observation's term of :attr:`ray_bias_sum`.
         """
         self._record(t_s, ids, self.OBSERVED)
         n_before = self.n_seen[ids].astype(np.float32)
@@ -362,6 +372,8 @@ class LandmarkMap:
         self.p_ned_m[ids] = np.linalg.solve(A_new, b[..., None])[..., 0]
         self.index.note_moved(ids, p_before, self.p_ned_m[ids])
         self.info_packed[ids] = pack_sym(A_new)
+        if ray_bias is not None:
+            self.ray_bias_sum[ids] += ray_bias
         self.n_seen[ids] = np.minimum(self.n_seen[ids].astype(np.int32) + 1, np.iinfo(np.uint16).max)
         better = view_cos > self.view_cos[ids]
         self.descriptors[ids[better]] = descriptors[better]
@@ -387,6 +399,8 @@ class LandmarkMap:
         p_before = self.p_ned_m[ids].copy()
         self.p_ned_m[ids] = p
         self.info_packed[ids] = info
+        D = float(from_rad) - float(heading_rad)  # the views' rays turn by this, and with them the bias sum
+        self.ray_bias_sum[ids] = turned_vectors(self.ray_bias_sum[ids].astype(float), float(np.cos(D)), float(np.sin(D)))
         self.index.note_moved(ids, p_before, self.p_ned_m[ids])
         views.sums = sums
         return ids.copy()
@@ -452,7 +466,7 @@ class LandmarkMap:
         """(M, 3, 3) position covariance, m^2."""
         return np.linalg.inv(unpack_sym(self.info_packed[ids]))
 
-    def variance_across_rays_m2(self, ids: np.ndarray, d_ned: np.ndarray) -> np.ndarray:
+    def variance_across_rays_m2(self, ids: np.ndarray, d_ned: np.ndarray, with_bias: bool = True) -> np.ndarray:
         """(M,) a landmark's position variance across the unit ray ``d_ned`` (M, 3) it is seen along, per axis,
         m^2: half the trace of ``(I - d d^T) C (I - d d^T)``, so that off nadir its height error counts as well.
         From the cofactors of the information matrix rather than a matrix inverse per landmark (the localiser
@@ -463,7 +477,27 @@ class LandmarkMap:
         det = a00 * c00 + a01 * c01 + a02 * c02
         x, y, z = np.asarray(d_ned, float).T
         along = c00 * x * x + c11 * y * y + c22 * z * z + 2.0 * (c01 * x * y + c02 * x * z + c12 * y * z)
-        return 0.5 * (c00 + c11 + c22 - along) / det
+        var = 0.5 * (c00 + c11 + c22 - along) / det
+        if not with_bias:
+            return var
+        # The triangulation's expected bias (see :meth:`triangulation_bias_m`) counts as error: its square across
+        # the ray, half to each axis (mean squared error = variance + bias^2).
+        g0, g1, g2 = self.ray_bias_sum[ids].astype(float).T
+        b0 = -(c00 * g0 + c01 * g1 + c02 * g2) / det
+        b1 = -(c01 * g0 + c11 * g1 + c12 * g2) / det
+        b2 = -(c02 * g0 + c12 * g1 + c22 * g2) / det
+        b_along = b0 * x + b1 * y + b2 * z
+        return var + 0.5 * (b0 * b0 + b1 * b1 + b2 * b2 - b_along * b_along)
+
+    def triangulation_bias_m(self, ids: np.ndarray) -> np.ndarray:
+        """(M, 3) m: how far the map's placement of each landmark is expected to lie from it, toward the cameras
+        that saw it: ``-A^-1 sum 2 s^2 t d / sigma^2`` (A its information). The point closest to rays whose
+        directions are noisy (angular sigma ``s`` per axis) lies that way, by about ``2 s^2`` over the squared
+        parallax of the range (``tools/triangulation_bias.py``): 0.2 m for eleven views over 9 m from 40 m at
+        3.8 mrad, and all but nothing once views span the footprint. Not taken off the position: where the
+        parallax is as small as the noise the estimate overshoots (docs/missions.md); it is counted as error."""
+        A = unpack_sym(self.info_packed[ids].astype(float))
+        return -np.linalg.solve(A, self.ray_bias_sum[ids].astype(float)[..., None])[..., 0]
 
     def ids_in_box(self, north_range_m: tuple[float, float], east_range_m: tuple[float, float]) -> np.ndarray:
         """Sorted ids of landmarks inside a north/east box (m, bounds included), through the spatial index."""

@@ -39,6 +39,12 @@ def ray_information(rays_ned: np.ndarray, sigma_perp_m: np.ndarray) -> np.ndarra
     return P / (sigma_perp_m**2)[:, None, None]
 
 
+def ray_bias_terms(rays_ned: np.ndarray, range_m: np.ndarray, sigma_angle_rad: np.ndarray, sigma_perp_m: np.ndarray) -> np.ndarray:
+    """(M, 3) 1/m: each ray observation's term of :attr:`LandmarkMap.ray_bias_sum`, ``2 s^2 t d / sigma_perp^2``
+    (``s`` its angular sigma per axis, ``t`` its range, ``d`` its unit direction)."""
+    return (2.0 * np.square(sigma_angle_rad) * range_m / np.square(sigma_perp_m))[:, None] * rays_ned
+
+
 def ray_mahalanobis2(L: np.ndarray, cov_L: np.ndarray, c: np.ndarray, d: np.ndarray, sigma_perp_m: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distance (2 dof) of landmarks ``L`` (M, 3) with covariance ``cov_L`` (M, 3, 3) from
     rays ``c + t d`` (unit ``d`` (M, 3)) with isotropic cross-ray noise ``sigma_perp_m`` (M,).
@@ -110,10 +116,12 @@ class Mapper:
         if len(matched_feat):
             d = rays[matched_feat]
             rng_m = np.linalg.norm(self.map.p_ned_m[matched_lm].astype(float) - c, axis=1)
-            A = ray_information(d, self._sigma_perp(rng_m, sigma_px[matched_feat], sigma_att_rad))
+            sigma_perp = self._sigma_perp(rng_m, sigma_px[matched_feat], sigma_att_rad)
+            A = ray_information(d, sigma_perp)
             b = np.einsum("nij,j->ni", A, c)
             self.map.observe(matched_lm, A, b, features.descriptors[matched_feat], d[:, 2].astype(np.float16), chi2,
-                             rng_m / features.scale, nav.t_s, view)
+                             rng_m / features.scale, nav.t_s, view,
+                             self._ray_bias(d, rng_m, sigma_px[matched_feat], sigma_att_rad, sigma_perp))
             ids_out[matched_feat] = matched_lm
 
         # Unmatched features become new landmarks on the ground plane, their height free within a few metres
@@ -133,12 +141,20 @@ class Mapper:
         n_added = 0
         if len(new):
             rng_m = np.linalg.norm(p0 - c, axis=1)
-            A = ray_information(rays[new], self._sigma_perp(rng_m, sigma_px[new], sigma_att_rad))
+            sigma_perp = self._sigma_perp(rng_m, sigma_px[new], sigma_att_rad)
+            A = ray_information(rays[new], sigma_perp)
             A[:, 2, 2] += 1.0 / cfg.initial_height_sigma_m**2
             ids_out[new] = self.map.add(features.descriptors[new], p0, A, rays[new, 2].astype(np.float16), rng_m / features.scale,
-                                        nav.t_s, view)
+                                        nav.t_s, view, self._ray_bias(rays[new], rng_m, sigma_px[new], sigma_att_rad, sigma_perp))
             n_added = len(new)
         return MappingResult(n, len(matched_feat), n_added, ids_out)
+
+    def _ray_bias(self, d: np.ndarray, range_m: np.ndarray, sigma_px: np.ndarray, sigma_att_rad: float,
+                  sigma_perp_m: np.ndarray) -> np.ndarray:
+        """Each view's term of :attr:`LandmarkMap.ray_bias_sum`, with the ray's angular sigma from the pixel's
+        and the attitude's (the GPS's offset of the camera biases nothing)."""
+        sigma_angle_rad = np.sqrt(np.square(sigma_px / self.camera.focal_px) + sigma_att_rad**2)
+        return ray_bias_terms(d, range_m, sigma_angle_rad, sigma_perp_m)
 
     def _sigma_perp(self, range_m: np.ndarray, sigma_px: np.ndarray, sigma_att_rad: float) -> np.ndarray:
         """One-sigma offset of a ray at ``range_m`` across its direction: pixel, attitude and GPS noise, m."""

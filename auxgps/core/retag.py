@@ -181,7 +181,7 @@ def _turned_packed(a: np.ndarray, c: float, s: float) -> np.ndarray:
                             c * a02 - s * a12, s * s * a00 + 2.0 * cs * a01 + c * c * a11, s * a02 + c * a12, a22])
 
 
-def _turned_vec(v: np.ndarray, c: float, s: float) -> np.ndarray:
+def turned_vectors(v: np.ndarray, c: float, s: float) -> np.ndarray:
     """``R v`` of vectors (..., 3)."""
     return np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]])
 
@@ -216,11 +216,11 @@ def turned(sums: np.ndarray, info_packed: np.ndarray, p_ned_m: np.ndarray, headi
     S2_e = G_e - S6_e
     # The common turn D, exactly: A_i -> R A_i R^T, so sum A_i' C_i = R sum A_i R^T C_i, and R^T c = cos c - sin K c.
     X = S2_e * cD - S4_e * sD + S6_e
-    P_new = _turned_vec(solve_sym3(A_e, X), cD, sD)
+    P_new = turned_vectors(solve_sym3(A_e, X), cD, sD)
     A_new = _turned_packed(A_e, cD, sD)
-    S2_new = _turned_vec(S2_e * cD - S4_e * sD, cD, sD)
-    S4_new = _turned_vec(S4_e * cD + S2_e * sD, cD, sD)
-    S6_new = _turned_vec(S6_e, cD, sD)
+    S2_new = turned_vectors(S2_e * cD - S4_e * sD, cD, sD)
+    S4_new = turned_vectors(S4_e * cD + S2_e * sD, cD, sD)
+    S6_new = turned_vectors(S6_e, cD, sD)
     out = np.empty_like(S)
     out[:, 0:6] = b * A_new
     out[:, 6:9] = b * S2_new

@@ -58,8 +58,8 @@ from auxgps.errors import MapError
 from auxgps.photo.types import PhotoMap, SolvedPhoto
 
 FORMAT = "auxgps-map"
-VERSION = 4
-READABLE_VERSIONS = (1, 2, 3, 4)
+VERSION = 5
+READABLE_VERSIONS = (1, 2, 3, 4, 5)
 DESCRIPTOR_BYTES = {"orb": 32, "sift": 128}
 _COLUMNS = {
     "descriptors": (np.uint8, None),  # width set by the descriptor kind
@@ -71,6 +71,7 @@ _COLUMNS = {
     "descriptor_range_m": (np.float16, ()),
     "chi2_mean": (np.float16, ()),
     "source": (np.uint8, ()),
+    "ray_bias_sum": (np.float32, (3,)),
 }
 
 
@@ -165,6 +166,9 @@ def _read(path: Path) -> tuple[dict, dict, LocalFrame]:
                     continue
                 if name == "source" and meta["version"] < 4:
                     columns[name] = np.zeros(n, dtype)
+                    continue
+                if name == "ray_bias_sum" and meta["version"] < 5:  # no bias expected of its landmarks
+                    columns[name] = np.zeros((n, 3), dtype)
                     continue
                 a = data[name]
                 if a.dtype != dtype or a.shape != (n, *tail):
@@ -262,6 +266,7 @@ def save_photo_map(path: Path | str, photo_map: PhotoMap, frame: LocalFrame, pri
         "descriptor_range_m": np.full(n, np.nan, np.float16),
         "chi2_mean": np.zeros(n, np.float16),
         "source": (photo_map.source if photo_map.source is not None else np.zeros(n)).astype(np.uint8),
+        "ray_bias_sum": np.zeros((n, 3), np.float32),  # a photo block's bundle adjustment leaves none to expect
     }
     if prior is not None:
         meta["prior"] = prior
