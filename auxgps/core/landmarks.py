@@ -180,7 +180,7 @@ class LandmarkMap:
         self.sources: list[MapSource] = [FLIGHT]
         # Sum over its views of 2 s^2 t d / sigma^2 (s: a view's angular sigma, t its range, d its unit ray, sigma
         # its cross-ray sigma), 1/m: what makes the closest point to noisy rays lie toward the cameras (see
-        # :meth:`triangulation_bias_m`). Zero for a prior map's landmarks and those of a map file.
+        # :meth:`triangulation_bias_m`). Zero for a prior map's landmarks and those of a map file before version 5.
         self.ray_bias_sum = np.zeros((capacity, 3), np.float32)
         # This flight's recent views, for :meth:`turn` (not saved: a loaded map's landmarks are not turned).
         self.recent_views = RecentViews()
