@@ -43,15 +43,21 @@ def test_a_checkpoint_keeps_the_heading_error_its_flight_had_solved(tmp_path):
     assert saved_heading(tmp_path / "bad.npz") is None
 
 
-def test_version_2_file_is_read_with_unknown_descriptor_ranges(tmp_path):
-    lm = some_map()
+def _older_file(tmp_path, lm, version: int, lacking: str):
+    """``lm`` saved as a map file of an older ``version``, without the column it did not have yet."""
     save_map(tmp_path / "m.npz", lm, FRAME)
     with np.load(tmp_path / "m.npz") as data:
-        arrays = {k: data[k] for k in data.files if k != "descriptor_range_m"}
+        arrays = {k: data[k] for k in data.files if k != lacking}
     meta = json.loads(str(arrays.pop("meta")))
-    meta["version"] = 2
-    np.savez(tmp_path / "v2.npz", meta=np.array(json.dumps(meta)), **arrays)
-    back, _ = load_map(tmp_path / "v2.npz")
+    meta["version"] = version
+    path = tmp_path / f"v{version}.npz"
+    np.savez(path, meta=np.array(json.dumps(meta)), **arrays)
+    return path
+
+
+def test_version_2_file_is_read_with_unknown_descriptor_ranges(tmp_path):
+    lm = some_map()
+    back, _ = load_map(_older_file(tmp_path, lm, 2, "descriptor_range_m"))
     assert np.array_equal(back.p_ned_m[: len(lm)], lm.p_ned_m[: len(lm)])
     assert np.all(np.isnan(back.descriptor_range_m[: len(lm)]))
 
@@ -63,12 +69,7 @@ def test_the_expected_bias_sums_are_saved_and_an_older_file_expects_none(tmp_pat
     save_map(tmp_path / "m.npz", lm, FRAME)
     back, _ = load_map(tmp_path / "m.npz")
     assert np.array_equal(back.ray_bias_sum[:n], lm.ray_bias_sum[:n])
-    with np.load(tmp_path / "m.npz") as data:
-        arrays = {k: data[k] for k in data.files if k != "ray_bias_sum"}
-    meta = json.loads(str(arrays.pop("meta")))
-    meta["version"] = 4
-    np.savez(tmp_path / "v4.npz", meta=np.array(json.dumps(meta)), **arrays)
-    old, _ = load_map(tmp_path / "v4.npz")
+    old, _ = load_map(_older_file(tmp_path, lm, 4, "ray_bias_sum"))
     assert np.array_equal(old.p_ned_m[:n], lm.p_ned_m[:n]) and not np.any(old.ray_bias_sum[:n])
 
 

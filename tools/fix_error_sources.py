@@ -17,24 +17,14 @@ import numpy as np
 from auxgps.config import PipelineConfig, load_pipeline_config
 from auxgps.core import localise
 from auxgps.evaluation import scenario as S
-from auxgps.io.mission import load_mission
-from auxgps.sim.flight import load_sim_config
-from auxgps.sim.world import load_world
+from landmark_bias import mission_arguments, run_mission  # tools/, beside this script
 
 VARIANTS = ("as made", "true map", "true attitude", "both", "true heights only", "true north/east only", "tilt held")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--world", required=True)
-    ap.add_argument("--mission", required=True)
-    ap.add_argument("--alt-m", type=float, default=None)
-    ap.add_argument("--speed-m-s", type=float, default=8.0)
-    ap.add_argument("--gps-lost-at-waypoint", type=int, required=True)
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--fps", type=float, default=10.0)
-    ap.add_argument("--config", default=None)
-    ap.add_argument("--sim-config", default=None)
+    mission_arguments(ap)
     ap.add_argument("--bad-m", type=float, default=0.5, help="fixes off by more than this are shown apart (m)")
     a = ap.parse_args()
     cfg = load_pipeline_config(a.config) if a.config else PipelineConfig()
@@ -60,8 +50,7 @@ def main() -> None:
         return result
 
     S._MapTruth.on_frame, localise.Localiser._choose, localise.Localiser.locate = keep_pose, keep_choice, keep_fix
-    world, mission = load_world(a.world), load_mission(a.mission)
-    rec = S.run_mission(world, mission, a.alt_m, a.speed_m_s, a.gps_lost_at_waypoint, a.fps, a.seed, cfg, load_sim_config(a.sim_config))
+    rec, _, _ = run_mission(a, cfg)
     truths_of = truth["map"].truths_of
 
     rows, shared = [], []

@@ -22,8 +22,8 @@ from auxgps.sim.flight import load_sim_config, mission_waypoints_ned
 from auxgps.sim.world import load_world
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def mission_arguments(ap: argparse.ArgumentParser) -> None:
+    """The arguments of one seeded mission run (shared with tools/fix_error_sources.py)."""
     ap.add_argument("--world", required=True)
     ap.add_argument("--mission", required=True)
     ap.add_argument("--alt-m", type=float, default=None)
@@ -31,9 +31,21 @@ def main() -> None:
     ap.add_argument("--gps-lost-at-waypoint", type=int, required=True)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--fps", type=float, default=10.0)
-    ap.add_argument("--config", default=None)
-    ap.add_argument("--radius-m", type=float, default=25.0)
+    ap.add_argument("--config", default=None, help="pipeline config YAML (default: built-in defaults)")
     ap.add_argument("--sim-config", default=None, help="simulation config YAML (default: built-in defaults)")
+
+
+def run_mission(a: argparse.Namespace, cfg: PipelineConfig):
+    """Fly the mission ``a`` names with ``cfg``: its scored record, the world and the mission."""
+    world, mission = load_world(a.world), load_mission(a.mission)
+    rec = S.run_mission(world, mission, a.alt_m, a.speed_m_s, a.gps_lost_at_waypoint, a.fps, a.seed, cfg, load_sim_config(a.sim_config))
+    return rec, world, mission
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    mission_arguments(ap)
+    ap.add_argument("--radius-m", type=float, default=25.0)
     a = ap.parse_args()
     cfg = load_pipeline_config(a.config) if a.config else PipelineConfig()
     kept = {}
@@ -44,8 +56,7 @@ def main() -> None:
         return errors(self, est, pipeline)
 
     S._MapTruth.errors = keep
-    world, mission = load_world(a.world), load_mission(a.mission)
-    S.run_mission(world, mission, a.alt_m, a.speed_m_s, a.gps_lost_at_waypoint, a.fps, a.seed, cfg, load_sim_config(a.sim_config))
+    _, world, mission = run_mission(a, cfg)
     est, truth = kept["est"], kept["truth"]
     lm, m = est.landmarks, cfg.mapping
     seen = np.flatnonzero((lm.n_seen[: len(lm)] >= m.min_seen) & (lm.source[: len(lm)] == 0))
