@@ -471,10 +471,7 @@ class LandmarkMap:
         m^2: half the trace of ``(I - d d^T) C (I - d d^T)``, so that off nadir its height error counts as well.
         From the cofactors of the information matrix rather than a matrix inverse per landmark (the localiser
         asks for it at every reading)."""
-        a00, a01, a02, a11, a12, a22 = self.info_packed[ids].astype(float).T
-        c00, c11, c22 = a11 * a22 - a12 * a12, a00 * a22 - a02 * a02, a00 * a11 - a01 * a01
-        c01, c02, c12 = a02 * a12 - a01 * a22, a01 * a12 - a02 * a11, a01 * a02 - a00 * a12
-        det = a00 * c00 + a01 * c01 + a02 * c02
+        c00, c01, c02, c11, c12, c22, det = self._cofactors(ids)
         x, y, z = np.asarray(d_ned, float).T
         along = c00 * x * x + c11 * y * y + c22 * z * z + 2.0 * (c01 * x * y + c02 * x * z + c12 * y * z)
         var = 0.5 * (c00 + c11 + c22 - along) / det
@@ -482,10 +479,7 @@ class LandmarkMap:
             return var
         # The triangulation's expected bias (see :meth:`triangulation_bias_m`) counts as error: its square across
         # the ray, half to each axis (mean squared error = variance + bias^2).
-        g0, g1, g2 = self.ray_bias_sum[ids].astype(float).T
-        b0 = -(c00 * g0 + c01 * g1 + c02 * g2) / det
-        b1 = -(c01 * g0 + c11 * g1 + c12 * g2) / det
-        b2 = -(c02 * g0 + c12 * g1 + c22 * g2) / det
+        b0, b1, b2 = self._bias_from_cofactors(ids, c00, c01, c02, c11, c12, c22, det)
         b_along = b0 * x + b1 * y + b2 * z
         return var + 0.5 * (b0 * b0 + b1 * b1 + b2 * b2 - b_along * b_along)
 
@@ -496,8 +490,21 @@ class LandmarkMap:
         parallax of the range (``tools/triangulation_bias.py``): 0.2 m for eleven views over 9 m from 40 m at
         3.8 mrad, and all but nothing once views span the footprint. Not taken off the position: where the
         parallax is as small as the noise the estimate overshoots (docs/missions.md); it is counted as error."""
-        A = unpack_sym(self.info_packed[ids].astype(float))
-        return -np.linalg.solve(A, self.ray_bias_sum[ids].astype(float)[..., None])[..., 0]
+        return np.column_stack(self._bias_from_cofactors(ids, *self._cofactors(ids)))
+
+    def _cofactors(self, ids: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The cofactors of each landmark's information (c00, c01, c02, c11, c12, c22) and its determinant: its
+        covariance is their matrix over the determinant."""
+        a00, a01, a02, a11, a12, a22 = self.info_packed[ids].astype(float).T
+        c00, c11, c22 = a11 * a22 - a12 * a12, a00 * a22 - a02 * a02, a00 * a11 - a01 * a01
+        c01, c02, c12 = a02 * a12 - a01 * a22, a01 * a12 - a02 * a11, a01 * a02 - a00 * a12
+        return c00, c01, c02, c11, c12, c22, a00 * c00 + a01 * c01 + a02 * c02
+
+    def _bias_from_cofactors(self, ids, c00, c01, c02, c11, c12, c22, det) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`triangulation_bias_m`'s north, east and down, ``-C g``, from the cofactors of the information."""
+        g0, g1, g2 = self.ray_bias_sum[ids].astype(float).T
+        return (-(c00 * g0 + c01 * g1 + c02 * g2) / det, -(c01 * g0 + c11 * g1 + c12 * g2) / det,
+                -(c02 * g0 + c12 * g1 + c22 * g2) / det)
 
     def ids_in_box(self, north_range_m: tuple[float, float], east_range_m: tuple[float, float]) -> np.ndarray:
         """Sorted ids of landmarks inside a north/east box (m, bounds included), through the spatial index."""

@@ -116,12 +116,13 @@ class Mapper:
         if len(matched_feat):
             d = rays[matched_feat]
             rng_m = np.linalg.norm(self.map.p_ned_m[matched_lm].astype(float) - c, axis=1)
-            sigma_perp = self._sigma_perp(rng_m, sigma_px[matched_feat], sigma_att_rad)
+            sigma_angle = self._sigma_angle(sigma_px[matched_feat], sigma_att_rad)
+            sigma_perp = self._sigma_perp(rng_m, sigma_angle)
             A = ray_information(d, sigma_perp)
             b = np.einsum("nij,j->ni", A, c)
             self.map.observe(matched_lm, A, b, features.descriptors[matched_feat], d[:, 2].astype(np.float16), chi2,
                              rng_m / features.scale, nav.t_s, view,
-                             self._ray_bias(d, rng_m, sigma_px[matched_feat], sigma_att_rad, sigma_perp))
+                             ray_bias_terms(d, rng_m, sigma_angle, sigma_perp))
             ids_out[matched_feat] = matched_lm
 
         # Unmatched features become new landmarks on the ground plane, their height free within a few metres
@@ -141,25 +142,23 @@ class Mapper:
         n_added = 0
         if len(new):
             rng_m = np.linalg.norm(p0 - c, axis=1)
-            sigma_perp = self._sigma_perp(rng_m, sigma_px[new], sigma_att_rad)
+            sigma_angle = self._sigma_angle(sigma_px[new], sigma_att_rad)
+            sigma_perp = self._sigma_perp(rng_m, sigma_angle)
             A = ray_information(rays[new], sigma_perp)
             A[:, 2, 2] += 1.0 / cfg.initial_height_sigma_m**2
             ids_out[new] = self.map.add(features.descriptors[new], p0, A, rays[new, 2].astype(np.float16), rng_m / features.scale,
-                                        nav.t_s, view, self._ray_bias(rays[new], rng_m, sigma_px[new], sigma_att_rad, sigma_perp))
+                                        nav.t_s, view, ray_bias_terms(rays[new], rng_m, sigma_angle, sigma_perp))
             n_added = len(new)
         return MappingResult(n, len(matched_feat), n_added, ids_out)
 
-    def _ray_bias(self, d: np.ndarray, range_m: np.ndarray, sigma_px: np.ndarray, sigma_att_rad: float,
-                  sigma_perp_m: np.ndarray) -> np.ndarray:
-        """Each view's term of :attr:`LandmarkMap.ray_bias_sum`, with the ray's angular sigma from the pixel's
-        and the attitude's (the GPS's offset of the camera biases nothing)."""
-        sigma_angle_rad = np.sqrt(np.square(sigma_px / self.camera.focal_px) + sigma_att_rad**2)
-        return ray_bias_terms(d, range_m, sigma_angle_rad, sigma_perp_m)
+    def _sigma_angle(self, sigma_px: np.ndarray, sigma_att_rad: float) -> np.ndarray:
+        """One-sigma error of a ray's direction, per axis: pixel and attitude noise, rad (the GPS's offset of the
+        camera moves the ray without turning it)."""
+        return np.hypot(sigma_px / self.camera.focal_px, sigma_att_rad)
 
-    def _sigma_perp(self, range_m: np.ndarray, sigma_px: np.ndarray, sigma_att_rad: float) -> np.ndarray:
-        """One-sigma offset of a ray at ``range_m`` across its direction: pixel, attitude and GPS noise, m."""
-        sigma_angle = np.hypot(sigma_px / self.camera.focal_px, sigma_att_rad)
-        return np.hypot(range_m * sigma_angle, self._sigma_pos_m)
+    def _sigma_perp(self, range_m: np.ndarray, sigma_angle_rad: np.ndarray) -> np.ndarray:
+        """One-sigma offset of a ray at ``range_m`` across its direction: its direction's error there and GPS noise, m."""
+        return np.hypot(range_m * sigma_angle_rad, self._sigma_pos_m)
 
     def _guided_match(self, features, cand, uv_lm, rays, c, sigma_px, sigma_att_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One-to-one matches (feature indices, landmark ids, squared Mahalanobis innovations).
@@ -193,7 +192,7 @@ class Mapper:
         range_m = range_u_m[of_u]
         radius = np.minimum(3.0 * np.hypot(sigma_px[fi] * 2.0, sigma_lm_px), cfg.match_radius_px)
         d_shifted = np.linalg.norm(offsets - shift, axis=1)
-        m2 = ray_mahalanobis2(L_u[of_u], cov_u[of_u], c, rays[fi], self._sigma_perp(range_m, sigma_px[fi], sigma_att_rad))
+        m2 = ray_mahalanobis2(L_u[of_u], cov_u[of_u], c, rays[fi], self._sigma_perp(range_m, self._sigma_angle(sigma_px[fi], sigma_att_rad)))
         ok = (d_shifted <= radius) & (m2 <= cfg.gate_chi2)
         fi, ci, ham, m2, d_shifted = fi[ok], ci[ok], ham[ok], m2[ok], d_shifted[ok]
         # Greedy one-to-one assignment, nearest first, then best descriptor.
