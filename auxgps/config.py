@@ -223,6 +223,9 @@ class HeadingConfig:
     solve: bool = True
     sigma_deg: Positive = 2.0
     tau_s: Positive = 300.0
+    # The probability, before any evidence, that the heading is off (wandering as above) rather than right within
+    # the telemetry's noise; the tracker weighs the two (HeadingTracker) and takes out their mixture's estimate.
+    off_prior: Annotated[float, Field(gt=0, lt=1)] = 0.5
     # While mapping: each frame is paired with an earlier one at least min_baseline_m away and at most
     # max_pair_gap_s before it, sharing at least min_shared landmarks; GPS1's error over that interval, across it.
     min_baseline_m: Positive = 8.0

@@ -122,20 +122,44 @@ def test_tracker_follows_a_wandering_error_and_refuses_a_jump():
         b_true += np.deg2rad(0.01) * rng.standard_normal()
         tr.observe(t, b_true + np.deg2rad(0.4) * rng.standard_normal(), np.deg2rad(0.4) ** 2)
     est = tr.at(100.0)
+    assert est.p_off > 0.99 and np.isclose(est.offset_rad, tr.if_off(100.0).offset_rad, rtol=0.01)
     assert abs(est.offset_rad - b_true) < 3 * est.sigma_rad
     assert est.sigma_rad < np.deg2rad(0.35)  # down from 2 deg (steady state: (q R dt)^(1/4) = 0.27 deg)
-    before, n_refused = tr.at(100.5).offset_rad, tr.n_refused
+    before, n_refused = tr.if_off(100.5).offset_rad, tr.n_refused
     assert not tr.observe(100.5, b_true + np.deg2rad(5.0), np.deg2rad(0.4) ** 2)  # 5 deg off: refused, kept
-    assert tr.at(100.5).offset_rad == before and tr.n_refused == n_refused + 1
+    assert tr.if_off(100.5).offset_rad == before and tr.n_refused == n_refused + 1
     # A positioning frame turned by x against the map, located with the heading less u: the error is u - x.
-    assert tr.observe_turn(101.0, -0.001, np.deg2rad(0.1) ** 2, before) and tr.at(101.0).offset_rad > before
+    assert tr.observe_turn(101.0, -0.001, np.deg2rad(0.1) ** 2, before) and tr.if_off(101.0).offset_rad > before
     # Refused reset_after times in a row: the error has jumped, and the estimate reopens to follow it.
     for k in range(3):
         tr.observe(102.0 + k, b_true + np.deg2rad(5.0), np.deg2rad(0.4) ** 2)
-    assert tr.at(105.0).sigma_rad > 0.9 * np.deg2rad(cfg.sigma_deg)
+    assert tr.if_off(105.0).sigma_rad > 0.9 * np.deg2rad(cfg.sigma_deg)
     assert tr.observe(105.5, b_true + np.deg2rad(5.0), np.deg2rad(0.4) ** 2)
-    # Without evidence, the uncertainty grows back towards the prior.
-    assert tr.at(2000.0).sigma_rad > 0.95 * np.deg2rad(cfg.sigma_deg)
+    # Without evidence, the uncertainty grows back towards the prior, and so do the odds that it is off at all.
+    assert tr.if_off(2000.0).sigma_rad > 0.95 * np.deg2rad(cfg.sigma_deg)
+    assert abs(tr.at(1e5).p_off - cfg.off_prior) < 1e-6
+
+
+def test_a_heading_that_is_right_is_not_corrected_by_the_noise_of_its_measurements():
+    """The same measurements' noise (0.4 deg each), around no error and around a 1 deg one. Around none, the
+    evidence says "right" and what is taken out stays a small part of the filter's estimate, which wanders with
+    the noise; around 1 deg, "off", and the estimate is the filter's."""
+    cfg = HeadingConfig(sigma_deg=2.0, tau_s=300.0)
+    noise = np.deg2rad(0.4) * np.random.default_rng(5).standard_normal(100)
+    right, off = HeadingTracker(cfg), HeadingTracker(cfg)
+    wander, taken_out = [], []
+    for k, e in enumerate(noise):
+        right.observe(2.0 * k, e, np.deg2rad(0.4) ** 2)
+        off.observe(2.0 * k, np.deg2rad(1.0) + e, np.deg2rad(0.4) ** 2)
+        wander.append(right.if_off(2.0 * k).offset_rad)
+        taken_out.append(right.at(2.0 * k).offset_rad)
+    assert right.at(200.0).p_off < 0.1 and off.at(200.0).p_off > 0.99
+    assert np.std(taken_out[20:]) < 0.2 * np.std(wander[20:])
+    est = off.at(200.0)
+    assert abs(np.degrees(est.offset_rad) - 1.0) < 3 * np.degrees(est.sigma_rad) and np.degrees(est.sigma_rad) < 0.5
+    # The mixture's sigma covers the filter's estimate it did not take out.
+    e = right.at(200.0)
+    assert abs(right.if_off(200.0).offset_rad - e.offset_rad) < 3 * e.sigma_rad + 1e-9 or e.p_off < 1e-3
 
 
 def test_tracker_pairs_each_view_with_one_far_enough_back(pipeline):
@@ -160,14 +184,14 @@ def test_a_burst_of_correlated_frames_tells_what_a_few_independent_ones_do():
     tr = HeadingTracker(cfg)
     for k in range(40):
         tr.observe_turn(0.05 * k, -np.deg2rad(0.4), np.deg2rad(0.3) ** 2, 0.0)
-    est = tr.at(2.0)
+    est = tr.if_off(2.0)
     harmonic = sum(1.0 / n for n in range(1, 41))
     assert np.rad2deg(est.sigma_rad) > 0.95 * sigma_frame / np.sqrt(harmonic)  # 40 independent: sigma / 6.3
     assert np.rad2deg(est.sigma_rad) < 1.05 * sigma_frame / np.sqrt(harmonic)
     spaced = HeadingTracker(cfg)
     for k in range(5):
         spaced.observe_turn(2.5 * k, -np.deg2rad(0.4), np.deg2rad(0.3) ** 2, 0.0)
-    assert np.rad2deg(spaced.at(10.0).sigma_rad) < 1.05 * sigma_frame / np.sqrt(5)
+    assert np.rad2deg(spaced.if_off(10.0).sigma_rad) < 1.05 * sigma_frame / np.sqrt(5)
 
 
 def test_a_restored_heading_error_is_aged_toward_the_prior_by_the_time_since_it_was_saved():
@@ -181,10 +205,12 @@ def test_a_restored_heading_error_is_aged_toward_the_prior_by_the_time_since_it_
     stale = HeadingTracker(cfg)
     stale.restore(np.deg2rad(1.5), np.deg2rad(0.2), elapsed_s=20 * cfg.tau_s)
     e = stale.at(100.0)
-    assert abs(np.degrees(e.offset_rad)) < 1e-6 and np.isclose(np.degrees(e.sigma_rad), cfg.sigma_deg)
+    # the prior: the mixture of "off" (sigma_deg) and "right" (none)
+    prior_deg = np.sqrt(cfg.off_prior) * cfg.sigma_deg
+    assert abs(np.degrees(e.offset_rad)) < 1e-6 and np.isclose(np.degrees(e.sigma_rad), prior_deg)
     broken = HeadingTracker(cfg)
     broken.restore(float("nan"), 0.01, 1.0)
-    assert broken.at(0.0).offset_rad == 0.0 and np.isclose(np.degrees(broken.at(0.0).sigma_rad), cfg.sigma_deg)
+    assert broken.at(0.0).offset_rad == 0.0 and np.isclose(np.degrees(broken.at(0.0).sigma_rad), prior_deg)
 
 
 def _map_north_while_solving(scene, pipeline, b_true_rad, corrections_rad, turn):

@@ -33,12 +33,14 @@ import numpy as np
 @dataclass(frozen=True)
 class HeadingEstimate:
     """The autopilot's heading error at ``t_s``: ``offset_rad`` (subtract it from the heading) and its one sigma.
-    ``memory``: the tracker's memory clock then (:meth:`HeadingTracker.at`)."""
+    ``memory``: the tracker's memory clock then (:meth:`HeadingTracker.at`); ``p_off``: the probability that the
+    heading is off at all (the estimate is the mixture's: see :class:`HeadingTracker`)."""
 
     t_s: float
     offset_rad: float
     sigma_rad: float
     memory: float = 0.0
+    p_off: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -97,9 +99,22 @@ def heading_from_motion(now: MotionView, before: MotionView, shift_sigma_m: floa
     return HeadingMeasurement(now.t_s, med, var, len(z), float(np.sqrt(B2)))
 
 
+# The odds are kept within e^-9 to e^9 (p_off 1e-4 to 0.9999), so that a few seconds of evidence turn them.
+_MAX_LOG_ODDS = 9.0
+
+
 class HeadingTracker:
     """A scalar Kalman filter on the heading error (first-order Gauss-Markov: ``sigma_deg``, ``tau_s``), with the
     views of the last few mapping frames to pair each new one with.
+
+    Two hypotheses are weighed: the heading is off, and wanders as that process (a compass-fed EKF), or it is right
+    within the telemetry's own noise (a heading from two GPS antennas, a well-aligned EKF, the simulator). Each
+    measurement moves their odds by its likelihood under each (the filter's prediction against zero); between
+    measurements the odds relax toward ``off_prior`` over ``tau_s`` (a right heading may start to wander). What is
+    taken out of the heading is the mixture's mean, ``p_off`` times the filter's estimate, with the mixture's
+    variance: where the evidence cannot tell a small wandering error from none, a correction that follows the
+    measurements' noise is not worth its cost (the map geotagged with it carries that noise, shared by all the views
+    of a landmark, where a right heading's noise averages out over them). The filter itself runs as before.
 
     A measurement older than the newest is applied at the newest time (the error changes over minutes; frames come
     within a second). Each is gated on its innovation; a run of ``reset_after`` refused in a row (the error has
@@ -118,6 +133,7 @@ class HeadingTracker:
         self.n_used = 0
         self.n_refused = 0
         self._memory = 0.0  # the memory clock at self._t
+        self._p_off = cfg.off_prior  # at self._t
 
     def restore(self, offset_rad: float, sigma_rad: float, elapsed_s: float) -> None:
         """Start from an estimate saved ``elapsed_s`` ago (a map checkpoint, read again after a crash), decayed
@@ -128,6 +144,7 @@ class HeadingTracker:
         phi = float(np.exp(-elapsed_s / self.cfg.tau_s))
         self._b = offset_rad * phi
         self._var = min(sigma_rad**2 * phi**2 + self._sigma2 * (1.0 - phi**2), self._sigma2)
+        self._p_off = self.cfg.off_prior + (1.0 - self.cfg.off_prior) * phi  # the saved estimate was taken out as it is
         self._t = None
 
     def _decayed(self, t_s: float) -> tuple[float, float]:
@@ -135,6 +152,11 @@ class HeadingTracker:
             return self._b, self._var
         phi = float(np.exp(-(t_s - self._t) / self.cfg.tau_s))
         return self._b * phi, self._var * phi**2 + self._sigma2 * (1.0 - phi**2)
+
+    def _p_off_at(self, t_s: float) -> float:
+        if self._t is None or t_s <= self._t:
+            return self._p_off
+        return self.cfg.off_prior + (self._p_off - self.cfg.off_prior) * float(np.exp(-(t_s - self._t) / self.cfg.tau_s))
 
     def _memory_at(self, t_s: float, var: float) -> float:
         """The memory clock at ``t_s``: the integral of ``q / var`` (``q = 2 sigma^2 / tau_s``, the process's
@@ -147,7 +169,16 @@ class HeadingTracker:
         return self._memory + (t_s - self._t) * 2.0 * self._sigma2 / self.cfg.tau_s / max(var, 1e-12)
 
     def at(self, t_s: float) -> HeadingEstimate:
-        """The estimate at ``t_s`` (at the newest measurement's, for an earlier time)."""
+        """The estimate at ``t_s`` (at the newest measurement's, for an earlier time): the mixture of "off" and
+        "right" (see the class)."""
+        b, var = self._decayed(t_s)
+        p = self._p_off_at(t_s)
+        var_mixed = p * var + p * (1.0 - p) * b * b
+        return HeadingEstimate(max(t_s, self._t if self._t is not None else t_s), p * b, float(np.sqrt(var_mixed)),
+                               self._memory_at(t_s, var), p)
+
+    def if_off(self, t_s: float) -> HeadingEstimate:
+        """The filter's estimate at ``t_s`` alone, as if the heading were known to be off (``p_off`` 1)."""
         b, var = self._decayed(t_s)
         return HeadingEstimate(max(t_s, self._t if self._t is not None else t_s), b, float(np.sqrt(var)), self._memory_at(t_s, var))
 
@@ -163,10 +194,16 @@ class HeadingTracker:
         if innovation**2 > self.cfg.gate_chi2 * S:
             self.n_refused += 1
             self._refused_in_row += 1
+            self._p_off = self._p_off_at(t_s)
             self._b, self._var, self._t = b, var, t_new
             if self._refused_in_row >= self.cfg.reset_after:
                 self._var, self._refused_in_row = self._sigma2, 0
             return False
+        # The odds of "off" against "right": this measurement's likelihood under each (N(b, S) against N(0, R)).
+        p = self._p_off_at(t_s)
+        log_lr = 0.5 * (np.log(var_rad2 / S) + offset_rad**2 / var_rad2 - innovation**2 / S)
+        log_odds = np.clip(np.log(p / (1.0 - p)) + log_lr, -_MAX_LOG_ODDS, _MAX_LOG_ODDS)
+        self._p_off = float(1.0 / (1.0 + np.exp(-log_odds)))
         K = var / S
         self._b, self._var, self._t = b + K * innovation, max(var * (1.0 - K), 1e-12), t_new
         self._refused_in_row = 0

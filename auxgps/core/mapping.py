@@ -33,10 +33,20 @@ class MappingResult:
     landmark_ids: np.ndarray
 
 
-def ray_information(rays_ned: np.ndarray, sigma_perp_m: np.ndarray) -> np.ndarray:
-    """(M, 3, 3) information of ray observations: (I - d d^T) / sigma_perp^2, 1/m^2."""
+def ray_information(rays_ned: np.ndarray, sigma_perp_m: np.ndarray, sigma_turn_m: np.ndarray | None = None) -> np.ndarray:
+    """(M, 3, 3) information of ray observations, 1/m^2: (I - d d^T) / sigma_perp^2, and with ``sigma_turn_m``
+    less along ``u``, the horizontal direction across the ray, where a heading error moves the ray's far end:
+    ``sigma_perp^2 + sigma_turn^2`` there (a turn about the vertical through the camera moves a point at
+    horizontal distance ``r`` by the turn times ``r``, across; none at nadir)."""
     P = np.eye(3)[None] - rays_ned[:, :, None] * rays_ned[:, None, :]
-    return P / (sigma_perp_m**2)[:, None, None]
+    inv_s2 = 1.0 / sigma_perp_m**2
+    A = P * inv_s2[:, None, None]
+    if sigma_turn_m is not None:
+        h = np.hypot(rays_ned[:, 0], rays_ned[:, 1])
+        u = np.column_stack([-rays_ned[:, 1], rays_ned[:, 0], np.zeros(len(h))]) / np.maximum(h, 1e-12)[:, None]
+        less = inv_s2 - 1.0 / (sigma_perp_m**2 + sigma_turn_m**2)
+        A -= less[:, None, None] * u[:, :, None] * u[:, None, :]
+    return A
 
 
 def ray_bias_terms(rays_ned: np.ndarray, range_m: np.ndarray, sigma_angle_rad: np.ndarray, sigma_perp_m: np.ndarray) -> np.ndarray:
@@ -78,6 +88,7 @@ class Mapper:
         self.map = landmarks
         noise = cfg.noise
         self._sigma_att_rad = np.deg2rad(noise.attitude_deg)
+        self._sigma_heading_rad = np.deg2rad(noise.heading_deg)
         self._sigma_pos_m = noise.gps_horizontal_m
         half_diag = np.hypot(camera.width_px, camera.height_px) / 2.0 / camera.focal_px
         self._footprint_tan = half_diag + 0.5  # room for some tilt
@@ -92,6 +103,7 @@ class Mapper:
         c = pose.p_cam_in_ned_m
         rays = pose.rays_ned(self.camera, features.uv_px)
         sigma_att_rad = self._sigma_att_rad if nav.attitude_sigma_rad is None else nav.attitude_sigma_rad
+        sigma_heading_rad = self._sigma_heading_rad if nav.heading_sigma_rad is None else nav.heading_sigma_rad
         # A keypoint found on a coarser pyramid level is located less precisely.
         sigma_px = self.cfg.noise.pixel_px * self.cfg.detector.scale_factor ** features.octave / features.scale
 
@@ -118,7 +130,7 @@ class Mapper:
             rng_m = np.linalg.norm(self.map.p_ned_m[matched_lm].astype(float) - c, axis=1)
             sigma_angle = self._sigma_angle(sigma_px[matched_feat], sigma_att_rad)
             sigma_perp = self._sigma_perp(rng_m, sigma_angle)
-            A = ray_information(d, sigma_perp)
+            A = ray_information(d, sigma_perp, sigma_heading_rad * rng_m * np.hypot(d[:, 0], d[:, 1]))
             b = np.einsum("nij,j->ni", A, c)
             self.map.observe(matched_lm, A, b, features.descriptors[matched_feat], d[:, 2].astype(np.float16), chi2,
                              rng_m / features.scale, nav.t_s, view,
@@ -144,7 +156,7 @@ class Mapper:
             rng_m = np.linalg.norm(p0 - c, axis=1)
             sigma_angle = self._sigma_angle(sigma_px[new], sigma_att_rad)
             sigma_perp = self._sigma_perp(rng_m, sigma_angle)
-            A = ray_information(rays[new], sigma_perp)
+            A = ray_information(rays[new], sigma_perp, sigma_heading_rad * rng_m * np.hypot(rays[new, 0], rays[new, 1]))
             A[:, 2, 2] += 1.0 / cfg.initial_height_sigma_m**2
             ids_out[new] = self.map.add(features.descriptors[new], p0, A, rays[new, 2].astype(np.float16), rng_m / features.scale,
                                         nav.t_s, view, ray_bias_terms(rays[new], rng_m, sigma_angle, sigma_perp))

@@ -17,7 +17,8 @@ class NavSample:
     t_s : s; p_gps_ned_m : (3,) m or None without GPS; alt_above_origin_m : height above the local origin (barometric), m;
     R_ned_body : (3, 3) attitude; heading : the autopilot's heading error taken out of it (None: not solved, the
     heading as it came); attitude_sigma_rad : how far the attitude's tilt may be off, one sigma (None: the noise
-    model's ``attitude_deg``; more while the body turns, as the frame's timing is uncertain).
+    model's ``attitude_deg``; more while the body turns, as the frame's timing is uncertain); heading_sigma_rad : how
+    far its heading may be off, one sigma (None: the noise model's ``heading_deg``).
     """
 
     t_s: float
@@ -26,6 +27,7 @@ class NavSample:
     R_ned_body: np.ndarray
     heading: HeadingEstimate | None = None
     attitude_sigma_rad: float | None = None
+    heading_sigma_rad: float | None = None
 
     def camera_pose(self, R_body_cam: np.ndarray) -> CameraPose:
         """Camera pose from GPS north/east and barometric height (the camera at the body origin)."""
