@@ -216,7 +216,8 @@ class HeadingConfig:
     heading is off by a degree or two on every autopilot, and over real terrain from 40 m that is the difference
     between coming home and a confident wrong position (the Seneca mission on real SITL: landed 0.36 m from home
     solved, 80 m away with an EKF failsafe not solved; docs/missions.md). Where the heading is exact (the
-    emulator) solving costs little (cubes4_0.5m_different at 15 m: fused 0.057 / 0.191 m against 0.057 / 0.188).
+    emulator) the tracker finds that too (``off_prior``) and takes out next to nothing: a correction following its
+    measurements' noise had put the Seneca out-and-back at 40 m over its targets (docs/missions.md).
     ``solve: false`` (config/pipeline/heading_unsolved.yaml) takes the autopilot's heading as it comes.
     """
 
