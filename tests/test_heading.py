@@ -208,6 +208,11 @@ def test_a_restored_heading_error_is_aged_toward_the_prior_by_the_time_since_it_
     # the prior: the mixture of "off" (sigma_deg) and "right" (none)
     prior_deg = np.sqrt(cfg.off_prior) * cfg.sigma_deg
     assert abs(np.degrees(e.offset_rad)) < 1e-6 and np.isclose(np.degrees(e.sigma_rad), prior_deg)
+    # Read back the moment it was saved (or with the clock stepped back): taken as it was, and evidence still moves it.
+    at_once = HeadingTracker(cfg)
+    at_once.restore(np.deg2rad(1.5), np.deg2rad(0.2), elapsed_s=0.0)
+    assert np.isclose(np.degrees(at_once.at(0.0).offset_rad), 1.5, atol=1e-3)
+    assert at_once.observe(1.0, np.deg2rad(1.4), np.deg2rad(0.4) ** 2) and 0.5 < at_once.at(1.0).p_off < 1.0
     broken = HeadingTracker(cfg)
     broken.restore(float("nan"), 0.01, 1.0)
     assert broken.at(0.0).offset_rad == 0.0 and np.isclose(np.degrees(broken.at(0.0).sigma_rad), prior_deg)

@@ -101,6 +101,7 @@ def heading_from_motion(now: MotionView, before: MotionView, shift_sigma_m: floa
 
 # The odds are kept within e^-9 to e^9 (p_off 1e-4 to 0.9999), so that a few seconds of evidence turn them.
 _MAX_LOG_ODDS = 9.0
+_P_OFF_MAX = float(1.0 / (1.0 + np.exp(-_MAX_LOG_ODDS)))
 
 
 class HeadingTracker:
@@ -144,7 +145,8 @@ class HeadingTracker:
         phi = float(np.exp(-elapsed_s / self.cfg.tau_s))
         self._b = offset_rad * phi
         self._var = min(sigma_rad**2 * phi**2 + self._sigma2 * (1.0 - phi**2), self._sigma2)
-        self._p_off = self.cfg.off_prior + (1.0 - self.cfg.off_prior) * phi  # the saved estimate was taken out as it is
+        # The saved estimate was taken out as it is: "off", as far as the odds' bound allows, aged like the rest.
+        self._p_off = self.cfg.off_prior + (_P_OFF_MAX - self.cfg.off_prior) * phi
         self._t = None
 
     def _decayed(self, t_s: float) -> tuple[float, float]:
@@ -202,6 +204,7 @@ class HeadingTracker:
         # The odds of "off" against "right": this measurement's likelihood under each (N(b, S) against N(0, R)).
         p = self._p_off_at(t_s)
         log_lr = 0.5 * (np.log(var_rad2 / S) + offset_rad**2 / var_rad2 - innovation**2 / S)
+        p = min(max(p, 1.0 - _P_OFF_MAX), _P_OFF_MAX)
         log_odds = np.clip(np.log(p / (1.0 - p)) + log_lr, -_MAX_LOG_ODDS, _MAX_LOG_ODDS)
         self._p_off = float(1.0 / (1.0 + np.exp(-log_odds)))
         K = var / S
