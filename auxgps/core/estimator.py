@@ -499,7 +499,7 @@ class Estimator:
         noise = self.cfg.noise
         rate = job.rate_ned_rad_s
         tilt = np.hypot(np.deg2rad(noise.attitude_deg), np.hypot(rate[0], rate[1]) * self._frame_time_s(job.frame))
-        heading_var = np.deg2rad(noise.heading_deg) ** 2 + self._timing_heading_var(job)
+        heading_var = self._heading_noise_var(job)
         if job.heading is not None:
             heading_var += job.heading.sigma_rad**2
         return {"tilt_sigma_rad": float(tilt), "heading_sigma_rad": float(np.sqrt(heading_var))}
@@ -522,6 +522,11 @@ class Estimator:
             return None
         return (f"turning at {rate_deg_s:.0f} deg/s: the frame's timing ({dt_s * 1e3:g} ms) leaves its heading "
                 f"{rate_deg_s * dt_s:.1f} deg uncertain, more than the telemetry's {heading_deg:g}; not located")
+
+    def _heading_noise_var(self, job: FrameJob) -> float:
+        """The frame's heading noise, rad^2: the telemetry's, and what the frame's timing makes of the turn rate
+        (what differs from frame to frame; the heading solver's uncertainty is not in it)."""
+        return float(np.deg2rad(self.cfg.noise.heading_deg) ** 2 + self._timing_heading_var(job))
 
     def _timing_heading_var(self, job: FrameJob) -> float:
         """What the frame's timestamp uncertainty makes of the heading's turn rate, rad^2."""
@@ -664,7 +669,7 @@ class Estimator:
             # view. Not the heading solver's uncertainty: one error for every view of the moment, it turns the map's
             # part seen then as a whole, and counted per view it widened the landmarks beside the track (the
             # textured world at 15 m, landmark RMS 0.084 -> 0.135 m).
-            heading_noise = float(np.sqrt(np.deg2rad(self.cfg.noise.heading_deg) ** 2 + self._timing_heading_var(job)))
+            heading_noise = float(np.sqrt(self._heading_noise_var(job)))
             with sw("mapping"):
                 retag = self.cfg.heading.follow_s > 0  # keep what turning the views again needs
                 mapped = self.mapper.process(feats, NavSample(job.frame.t_s, job.p_gps_ned_m, job.alt_above_origin_m, job.R_ned_body,

@@ -25,7 +25,7 @@ Pure: arrays and times in, estimates out; no clock.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -173,11 +173,10 @@ class HeadingTracker:
     def at(self, t_s: float) -> HeadingEstimate:
         """The estimate at ``t_s`` (at the newest measurement's, for an earlier time): the mixture of "off" and
         "right" (see the class)."""
-        b, var = self._decayed(t_s)
+        off = self.if_off(t_s)
         p = self._p_off_at(t_s)
-        var_mixed = p * var + p * (1.0 - p) * b * b
-        return HeadingEstimate(max(t_s, self._t if self._t is not None else t_s), p * b, float(np.sqrt(var_mixed)),
-                               self._memory_at(t_s, var), p)
+        b = off.offset_rad
+        return replace(off, offset_rad=p * b, sigma_rad=float(np.sqrt(p * off.sigma_rad**2 + p * (1.0 - p) * b * b)), p_off=p)
 
     def if_off(self, t_s: float) -> HeadingEstimate:
         """The filter's estimate at ``t_s`` alone, as if the heading were known to be off (``p_off`` 1)."""
