@@ -266,6 +266,42 @@ def refine_by_jacobians(loc, p0, corr, inl, alt_m):
     return p, cov, inl, float(dtheta @ prior_info[3:, 3:] @ dtheta)
 
 
+def test_a_seed_whose_members_cannot_come_near_the_best_is_not_refined(camera, pipeline, monkeypatch):
+    """A hundred points, 35 of them mapped a second time 1 m east (the same descriptor) and found twice on one
+    spot (two pyramid levels), and ten landmarks in view that the frame does not show. The copies' seeds are a
+    hypothesis 1 m off with 70 supporting features but 35 members one to one, where the right reading scores
+    about 70: refined, it would weigh e^-20 or less beside the best, so it is not refined, and the fix is the
+    one that refining it gives."""
+    import auxgps.core.localise as localise
+
+    rng = np.random.default_rng(11)
+    pts = np.column_stack([rng.uniform(-9, 9, 110), rng.uniform(-9, 9, 110), np.zeros(110)])
+    copies = pts[:35] + [0.0, 1.0, 0.0]
+    lm, desc = synthetic_map(camera, np.vstack([pts, copies]))
+    lm.descriptors[110:145] = lm.descriptors[:35]
+    p_true = np.array([0.5, -0.3, -20.0])
+    seen = view(camera, CameraPose(p_true, R_BODY_CAM_DOWN), pts[:100], desc[:100])  # the last ten unseen
+    feats = Features(np.vstack([seen.uv_px, seen.uv_px[:35] + [0.4, 0.3]]), np.vstack([desc[:100], desc[:35]]),
+                     np.r_[np.zeros(100, int), np.ones(35, int)])
+    prior = PositionPrior(p_true + [0.2, 0.1, 0.0], 0.5)
+
+    def refined(negligible_ll):
+        monkeypatch.setattr(localise, "_NEGLIGIBLE_LL", negligible_ll)
+        seeds = []
+        loc = Localiser(pipeline, camera, R_BODY_CAM_DOWN, lm)
+        reading = loc._reading
+        monkeypatch.setattr(loc, "_reading", lambda *a: seeds.append(a[2]) or reading(*a))
+        return loc.locate(feats, 1.0, np.eye(3), 20.0, prior), len(seeds)
+
+    fix, n_refined = refined(20.0)
+    fix_all, n_refined_all = refined(np.inf)  # no seed skipped: every distinct one refined
+    assert isinstance(fix, Fix) and isinstance(fix_all, Fix)
+    assert (n_refined, n_refined_all) == (1, 2)
+    assert np.linalg.norm(fix.p_ned_m[:2] - p_true[:2]) < atol_fix_m
+    np.testing.assert_allclose(fix.p_ned_m, fix_all.p_ned_m, rtol=0, atol=atol_equal_m)
+    np.testing.assert_allclose(fix.cov_ned_m2, fix_all.cov_ned_m2, rtol=rtol_equal, atol=1e-15)
+
+
 def test_refinement_in_closed_form_equals_the_jacobian_form(camera, pipeline, scene):
     """Noisy pixels, a telemetry attitude 0.3 degrees off and three features 10 px off (dropped as outliers):
     the localiser's refinement and the per-correspondence Jacobian form agree to rounding."""

@@ -81,6 +81,8 @@ LocateResult = Fix | NoFix
 #: Correspondence-seed distances measured at a time (600 kB of float64, as 256 correspondences by 300 seeds): they
 #: stay in a core's cache.
 _CONSENSUS_BLOCK_PAIRS = 256 * 300
+#: A reading this far below the best in log-likelihood weighs e^-20 (2e-9) of it in the fix's spread: nothing.
+_NEGLIGIBLE_LL = 20.0
 
 
 def _ransac_seeds(inlier_share: float, confidence: float) -> float:
@@ -363,7 +365,14 @@ class Localiser:
             if lls and support[s] < max(lls) - margin:
                 break
             covered |= np.linalg.norm(seed_hyp - seed_hyp[s], axis=1) <= seed_tau
-            r = self._reading(corr, view, seeds[s])
+            members = self._members(corr, view, seeds[s])
+            # Its log-likelihood is also at most its members one to one (inliers are some of them): a seed that
+            # cannot come within _NEGLIGIBLE_LL of the best read so far is not refined. It could neither make
+            # the frame ambiguous nor weigh in its spread. On Seneca these are most of the rivals: a feature's
+            # other landmark (mapped twice), a cluster's edge, read 0.05 to 0.6 m from the best and some 100 below.
+            if lls and np.count_nonzero(members) < max(lls) - max(margin, _NEGLIGIBLE_LL):
+                continue
+            r = self._reading(corr, view, seeds[s], members)
             # The seeds whose hypotheses the reading's refined position agrees with are its own as well: their
             # readings would refine to the same place (on the bench they did, a few cm off, at a reading each).
             covered |= np.linalg.norm(seed_hyp - r.p[:2], axis=1) <= seed_tau  # NaN positions cover none
@@ -388,10 +397,15 @@ class Localiser:
                 return f"ambiguous: a reading {apart_m:.2f} m away is within {ll[order[0]] - ll[k]:.1f} of the best", apart_m
         return _spread_by_rivals(best, readings, ll)
 
-    def _reading(self, corr: _Correspondences, view: _View, seed: int) -> _Reading:
-        """Refine the hypothesis of correspondence ``seed`` over its members (one per spot of the image) and score it."""
-        dist2 = cdist(corr.hyp, corr.hyp[seed][None], "sqeuclidean")[:, 0]  # as _consensus measures: the same members
-        inl = self._one_to_one(dist2 <= np.square(corr.tau), view.point_id[corr.feat_i], corr.lm_id, dist2)
+    def _members(self, corr: _Correspondences, view: _View, seed: int) -> np.ndarray:
+        """Boolean (K,): the correspondences whose hypothesis is within their ``tau`` of that of ``seed`` (as
+        :meth:`_consensus` counts them), one per spot of the image and one per landmark (:meth:`_one_to_one`)."""
+        dist2 = cdist(corr.hyp, corr.hyp[seed][None], "sqeuclidean")[:, 0]
+        return self._one_to_one(dist2 <= np.square(corr.tau), view.point_id[corr.feat_i], corr.lm_id, dist2)
+
+    def _reading(self, corr: _Correspondences, view: _View, seed: int, inl: np.ndarray) -> _Reading:
+        """Refine the hypothesis of correspondence ``seed`` over its members ``inl`` (one to one, see
+        :meth:`_one_to_one`) and score it."""
         fit = self._refine(np.array([*corr.hyp[seed], -view.alt_above_origin_m]), corr, inl, view.alt_above_origin_m, 1.0 / view.features.scale,
                            view.prior_info)
         explained = self._explained_share(fit.p, view)
