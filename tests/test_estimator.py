@@ -257,7 +257,9 @@ def test_a_frozen_camera_gives_no_fix_and_is_said_once(flight):
     notes = [r.note for _, r in results if r.note]
     assert len(notes) == 2 and notes[0].startswith("camera fault: frozen camera") and notes[1].startswith("camera fault over"), notes
     sigma = {round(o.t_s, 1): o.estimate.sigma_h_worst_m for (kind, _), o in zip(frozen, said) if kind == "output" and o.estimate}
-    assert sigma[20.9] > 2 * sigma[18.0]
+    # Three seconds on the IMU alone add at least 0.2 m to the one sigma (in quadrature: the map's shared error,
+    # which the heading solver cannot yet rule out on this short survey, is in both)
+    assert sigma[20.9] ** 2 - sigma[18.0] ** 2 > 0.2**2, (sigma[18.0], sigma[20.9])
 
 
 @pytest.mark.slow
@@ -401,3 +403,21 @@ def test_a_height_stuck_while_descending_is_not_fused_and_frames_take_the_filter
 
     hover, notes = fly(0.0, stuck_from_s=6.0, until_s=9.0)
     assert not any("stuck" in n for n in notes) and hover.alt_above_origin_m == pytest.approx(20.0, abs=1e-9)
+
+
+def test_the_heading_error_left_in_the_map_is_weighed_by_what_the_solver_has_learnt_since():
+    """What a heading error left in landmarks geotagged at a time, across the footprint's RMS radius at the height
+    given: the last mapping frame's at or before that time (the first's before any). If the heading is off, the
+    solver's estimate then less the correction taken out then, within its sigma then; if it is right, the
+    correction taken out; weighed by the probability of "off" the solver gives now. Nothing mapped: nothing."""
+    est = Estimator(PipelineConfig())
+    assert est._map_heading_sigma_m(5.0, 40.0, 1.0) == 0.0
+    # (estimate if off, its sigma, correction taken out), rad: the first before any evidence, then learnt
+    est._mapped_t_s = [2.0, 6.0, 10.0]
+    est._mapped_heading = [(0.0, 0.035, 0.0), (-0.02, 0.008, -0.01), (-0.025, 0.005, -0.025)]
+    cam = est.camera
+    footprint_rms_m = 40.0 / cam.focal_px * np.sqrt((cam.width_px**2 + cam.height_px**2) / 12.0)
+    for t_mapped_s, p_off, turn_rad in [(0.0, 1.0, 0.035), (2.0, 0.0, 0.0), (2.0, 0.5, np.sqrt(0.5) * 0.035),
+                                        (7.5, 1.0, np.hypot(0.008, 0.01)), (7.5, 0.0, 0.01), (99.0, 1.0, 0.005)]:
+        assert est._map_heading_sigma_m(t_mapped_s, 40.0, p_off) == pytest.approx(turn_rad * footprint_rms_m)
+    assert est._map_heading_sigma_m(99.0, 20.0, 1.0) == pytest.approx(0.005 * footprint_rms_m / 2.0)

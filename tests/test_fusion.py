@@ -473,3 +473,21 @@ def test_after_a_link_outage_a_fix_says_where_the_vehicle_is_not_how_fast_it_fli
     assert max(r["v_first"] for r in runs) < 11.8  # 3 sigma in 2 dof
     assert np.mean([r["v_nees"] for r in runs]) < 3.0
     assert np.mean([r["p_end"] for r in runs]) < 3.0
+
+
+def test_a_map_made_with_an_uncertain_heading_widens_the_error_fixes_share():
+    """Fixes from a part of the map geotagged while the heading was 0.5 m uncertain on the ground share that error:
+    the shared error's sigma is the root sum of squares of its own and that, its variance in the filter is at
+    least that at once, and a non-finite or zero sigma leaves the filter's own."""
+    f = make()
+    own_m = f.fix_bias_sigma_m
+    P_before = f._ekf.P.copy()
+    f.set_map_heading_sigma(0.5)
+    assert f.fix_bias_sigma_m == pytest.approx(np.hypot(own_m, 0.5))
+    assert f._ekf.P[9, 9] == pytest.approx(own_m**2 + 0.25) and f._ekf.P[10, 10] == pytest.approx(own_m**2 + 0.25)
+    np.testing.assert_array_equal(np.delete(np.delete(f._ekf.P, [9, 10], 0), [9, 10], 1),
+                                  np.delete(np.delete(P_before, [9, 10], 0), [9, 10], 1))  # nothing else moved
+    assert np.all(np.linalg.eigvalsh(f._ekf.P) >= 0.0)  # still a covariance (the prior map's offset states are 0 here)
+    for nothing in (0.0, np.nan):
+        f.set_map_heading_sigma(nothing)
+        assert f.fix_bias_sigma_m == pytest.approx(own_m)

@@ -63,6 +63,21 @@ def test_tilted_view_is_located_to_its_true_position(camera, pipeline, scene):
     assert res.n_inliers == len(pts)
 
 
+def test_a_fix_says_when_its_landmarks_were_mapped(camera, pipeline, scene):
+    """A fix carries the median time its inliers were first geotagged (the estimator looks up how well the heading
+    was known then); landmarks of a loaded map, with no such time, do not count."""
+    pts, lm, desc = scene
+    lm.t_first_s[: len(pts)] = np.arange(len(pts), dtype=float)
+    lm.t_first_s[:10] = -np.inf
+    pose = CameraPose(np.array([1.0, -0.5, -15.0]), R_BODY_CAM_DOWN)
+    res = locate(pipeline, camera, lm, view(camera, pose, pts, desc), np.eye(3), 15.0, PositionPrior(pose.p_cam_in_ned_m, 0.5))
+    assert isinstance(res, Fix) and res.n_inliers == len(pts)
+    assert res.t_mapped_s == pytest.approx(np.median(np.arange(10.0, len(pts))))
+    lm.t_first_s[: len(pts)] = -np.inf
+    res = locate(pipeline, camera, lm, view(camera, pose, pts, desc), np.eye(3), 15.0, PositionPrior(pose.p_cam_in_ned_m, 0.5))
+    assert isinstance(res, Fix) and np.isnan(res.t_mapped_s)
+
+
 def test_a_wrong_match_does_not_move_the_fix(camera, pipeline, scene):
     pts, lm, desc = scene
     R = R_ned_body_from_euler(0.0, 0.0, 0.2)

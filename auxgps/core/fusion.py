@@ -139,6 +139,7 @@ class NavFilter:
                  map_offset_sigma_m: float = 0.0) -> None:
         self.cfg = cfg
         self.map_offset_sigma_m = float(map_offset_sigma_m)
+        self._map_heading_sigma_m = 0.0  # see set_map_heading_sigma
         self._ekf = ExtendedKalmanFilter(dim_x=_N, dim_z=2)
         self._ekf.x = np.concatenate([p_ned_m, v_ned_m_s, np.zeros(7)]).reshape(_N, 1).astype(float)
         self._ekf.P = np.diag([sigma_p_m**2] * 3 + [sigma_v_m_s**2] * 3 + [cfg.accel_bias_sigma_m_s2**2] * 3
@@ -479,8 +480,22 @@ class NavFilter:
     def fix_bias_sigma_m(self) -> float:
         """One sigma of the error the visual fixes share, m, at the height the filter puts the vehicle at: its
         sources (attitude error, the map's geotagging) are angles, so it grows with the height above the origin's
-        ground, from ``fix_bias_sigma_m`` (low flights) by ``fix_bias_per_height``."""
-        return max(self.cfg.fix_bias_sigma_m, self.cfg.fix_bias_per_height * max(-float(self._ekf.x[2, 0]), 0.0))
+        ground, from ``fix_bias_sigma_m`` (low flights) by ``fix_bias_per_height``; and what the heading's error
+        left in the part of the map in view (:meth:`set_map_heading_sigma`)."""
+        own = max(self.cfg.fix_bias_sigma_m, self.cfg.fix_bias_per_height * max(-float(self._ekf.x[2, 0]), 0.0))
+        return float(np.hypot(own, self._map_heading_sigma_m))
+
+    def set_map_heading_sigma(self, sigma_m: float) -> None:
+        """The part of the map the fixes come from now was geotagged with a heading this uncertain, as metres on
+        the ground (one sigma): the fixes share it. Their shared error's variance is raised to it at once where it
+        is less (the map in view changed), and its process keeps it there."""
+        sigma_m = float(sigma_m) if np.isfinite(sigma_m) and sigma_m > 0 else 0.0
+        self._map_heading_sigma_m = sigma_m
+        P = self._ekf.P
+        floor = self.fix_bias_sigma_m**2
+        for i in (9, 10):
+            if P[i, i] < floor:
+                P[i, i] = floor
 
     def _reinitialise(self, p_ne_m: np.ndarray, cov_ne_m2: np.ndarray, prior_share: float = 0.0) -> None:
         """Put the position on a fix, forget the shared fix error and the prior map's offset (the fix holds the

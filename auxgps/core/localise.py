@@ -55,6 +55,7 @@ class Fix:
     heading_turn_var_rad2: float | None = None
     prior_share: float = 0.0
     map_source: str = "flight"
+    t_mapped_s: float = np.nan  # the median time its inliers were first geotagged (NaN: not known, a loaded map's)
 
     @property
     def sigma_h_rms_m(self) -> float:
@@ -319,7 +320,10 @@ class Localiser:
             turn = verdict.turn_rad / verdict.turn_var_rad2 * turn_var
         ids = corr.lm_id[inl]
         prior_share = float(np.mean(self.map.source[ids] != 0)) if len(ids) else 0.0
-        return Fix(t_s, p, cov, n_inl, n_corr, n_feat, turn, turn_var, prior_share, self.map.source_name(ids))
+        t_first_s = self.map.t_first_s[ids]
+        t_first_s = t_first_s[np.isfinite(t_first_s)]
+        t_mapped_s = float(np.median(t_first_s)) if len(t_first_s) else np.nan
+        return Fix(t_s, p, cov, n_inl, n_corr, n_feat, turn, turn_var, prior_share, self.map.source_name(ids), t_mapped_s)
 
     # -- steps -------------------------------------------------------------------------------------------------
 
