@@ -256,6 +256,9 @@ class Estimator:
         # out), rad. See _map_heading_sigma_m.
         self._mapped_t_s: list[float] = []
         self._mapped_heading: list[tuple[float, float, float]] = []
+        # The RMS distance of a point of the footprint from its centre, per metre of height (a camera constant).
+        cam = self.camera
+        self._footprint_rms_per_m = float(np.sqrt((cam.width_px**2 + cam.height_px**2) / 12.0)) / cam.focal_px
         self.landmarks.keep_journal(self.supervisor.cfg.undo_span_s)
         self._undo_found_at_s: float | None = None  # GPS1 found dragged by the gate: the map is to be undone
         self.filter: NavFilter | None = None
@@ -826,15 +829,13 @@ class Estimator:
         found the heading right. Where the heading wanders 1.5 deg (config/sim/heading_drift.yaml) that map was
         1.2 to 1.7 deg off; without this, a self-check 10 s later (it judges by landmarks that old) said GPS1 had
         drifted 1.0 m, mapping stopped at 18 s and the flight never came home."""
-        if not self._mapped_t_s or self.heading is None:
+        if not self._mapped_t_s:
             return 0.0
         i = max(bisect.bisect_right(self._mapped_t_s, t_mapped_s) - 1, 0)
         b_rad, sigma_rad, taken_rad = self._mapped_heading[i]
         p = float(np.clip(p_off_now, 0.0, 1.0))
         turn_var_rad2 = p * (sigma_rad**2 + (b_rad - taken_rad) ** 2) + (1.0 - p) * taken_rad**2
-        cam = self.camera
-        footprint_rms_m = max(alt_above_origin_m, 0.0) / cam.focal_px * float(np.sqrt((cam.width_px**2 + cam.height_px**2) / 12.0))
-        return float(np.sqrt(turn_var_rad2) * footprint_rms_m)
+        return float(np.sqrt(turn_var_rad2) * max(alt_above_origin_m, 0.0) * self._footprint_rms_per_m)
 
     def _loosen_by_drag(self, t_s: float) -> None:
         """GPS1 found dragged at ``t_s``: the filter followed it, so it is off by what the self-checks saw (in
