@@ -120,6 +120,10 @@ class MappingConfig:
     max_mean_chi2: Positive = 4.0  # a landmark whose views disagree more (2 expected) is not used to position
     min_found_ratio: Probability = 0.25  # nor one found in fewer of the frames that should have seen it
     initial_height_sigma_m: Positive = 3.0  # a new landmark's height prior about the ground plane
+    # A frame taken less than this after the last mapped one is not mapped (nor self-checked): views a thirtieth
+    # of a second apart add little but noise their errors share, and min_seen counts frames, not viewpoints. At 30
+    # frames a second, mapping every frame made a worse map (docs/benchmark.md, "Following").
+    min_interval_s: NonNegative = 0.08
 
 
 @dataclass(config=_STRICT, frozen=True)
@@ -153,6 +157,14 @@ class PositioningConfig:
     min_detection_scale: Annotated[float, Field(gt=0, le=1)] = 0.2
     # This many of the flight's own usable landmarks in reach, and a prior map's (an orthophoto's) are left out there.
     own_landmarks_take_over: Annotated[int, Field(ge=1)] = 60
+    # A positioning frame taken less than this after the last full one (one detected and matched) follows that
+    # fix's inliers into itself by optical flow instead (auxgps.core.tracking); 0: every frame is a full one.
+    # At 30 frames a second two frames in three are followed, at 10 or fewer none.
+    follow_for_s: NonNegative = 0.08
+    follow_window_px: Annotated[int, Field(ge=5, le=63)] = 21  # the Lucas-Kanade window
+    follow_levels: Annotated[int, Field(ge=0, le=6)] = 3  # pyramid levels above the image
+    follow_max_fb_px: Positive = 0.5  # how far the flow run backwards may end from where a point started
+    follow_min_kept: Probability = 0.5  # the share of the followed pairs that must stay inliers for a fix
 
 
 @dataclass(config=_STRICT, frozen=True)

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from auxgps.config import PipelineConfig
-from auxgps.core.camera import camera_from_config
+from auxgps.core.camera import CameraPose, camera_from_config
 from auxgps.core.events import Attitude, Frame, Gps1, Imu, Position
 from auxgps.core.features import FeatureDetector, Features, near_nadir, to_gray
 from auxgps.core.frame_check import FrameCheck
@@ -54,6 +54,7 @@ from auxgps.core.mapping import Mapper, MappingResult
 from auxgps.core.nav import NavSample
 from auxgps.core.stopwatch import null_stopwatch
 from auxgps.core.supervisor import Decision, Gps1Sample, Mode, Supervisor, SupervisorConfig
+from auxgps.core.tracking import InlierFlow
 
 
 @dataclass(frozen=True)
@@ -248,6 +249,8 @@ class Estimator:
         self.detector = FeatureDetector(cfg.detector)
         self.mapper = Mapper(cfg, self.camera, self.R_body_cam, self.landmarks, self.stopwatch)
         self.localiser = Localiser(cfg, self.camera, self.R_body_cam, self.landmarks, self.stopwatch)
+        pos = cfg.positioning
+        self.flow = InlierFlow(pos.follow_window_px, pos.follow_levels, pos.follow_max_fb_px)  # the last fix's inliers
         self.supervisor = Supervisor(self.options.supervisor)
         self.heading = HeadingTracker(cfg.heading) if cfg.heading.solve else None
         self._map_turned_to: float | None = None  # the heading error the map was last geotagged again with
@@ -255,6 +258,7 @@ class Estimator:
         # an hour): times, and (its estimate if the heading is off, that estimate's one sigma, the correction taken
         # out), rad. See _map_heading_sigma_m.
         self._mapped_t_s: list[float] = []
+        self._mapped_frame_t_s = -np.inf  # when the last frame to be mapped was taken
         self._mapped_heading: list[tuple[float, float, float]] = []
         # The RMS distance of a point of the footprint from its centre, per metre of height (a camera constant).
         cam = self.camera
@@ -583,6 +587,11 @@ class Estimator:
             # No filter, no GPS1, a map: locate without a prior, to start the filter (acquisition)
             return FrameJob(frame, R, alt, None, False, None, heading=heading, rate_ned_rad_s=rate_ned)
         mapping = self.supervisor.gps1_trusted
+        if mapping:
+            since_s = frame.t_s - self._mapped_frame_t_s
+            if 0.0 <= since_s < self.cfg.mapping.min_interval_s:
+                return FrameResult(frame.t_s, "skipped", f"not mapped: {since_s:.3f} s after the last mapped frame")
+            self._mapped_frame_t_s = frame.t_s
         # Where GPS1 puts the camera at the frame's time: the filter, which fuses GPS1 at its measurement time with
         # the IMU, interpolates between GPS1's readings and carries its lag.
         est = self.filter.estimate_at(frame.t_s)
@@ -633,6 +642,12 @@ class Estimator:
         with sw("checking"):
             grey = to_gray(job.frame.image_bgr)  # once for the check and the detector; a malformed frame is named here
             fault, note = self._check_frame(job, grey)
+        if fault is not None or job.mapping:
+            self.flow.forget()
+        elif self._may_follow(job):
+            followed = self._follow(job, grey, note)
+            if followed is not None:
+                return followed
         if fault is not None:
             nothing = Features(np.zeros((0, 2)), np.zeros((0, self.landmarks.descriptors.shape[1]), np.uint8), np.zeros(0, int))
             return FrameWork(job, nothing, None, NoFix(job.frame.t_s, fault), note)
@@ -671,6 +686,11 @@ class Estimator:
                                                  prior_cand, **sigmas)
                 if located is None or isinstance(on_prior, Fix):
                     located = on_prior
+        if not job.mapping:
+            if isinstance(located, Fix) and self._agrees_with_prior(located, job.prior):
+                self.flow.remember(grey, located.inliers)
+            else:
+                self.flow.forget()
         if job.mapping:
             # The mapper takes the tilt's sigma for the direction of every ray, and the heading's across it, where a
             # turn moves the ray's far end: the telemetry's noise and the frame's timing's, which differ from view to
@@ -684,6 +704,48 @@ class Estimator:
                                                               job.heading if retag else None, sigmas["tilt_sigma_rad"],
                                                               heading_noise))
         return FrameWork(job, feats, mapped, located, note)
+
+    def _may_follow(self, job: FrameJob) -> bool:
+        """Whether a positioning frame may follow the last fix's inliers instead of being a full one: there are
+        some, their full frame was taken less than ``follow_for_s`` before this one, and the filter knows where
+        the vehicle is well enough to track (see :meth:`Localiser.locate`)."""
+        cfg = self.cfg.positioning
+        pairs = self.flow.pairs
+        return (pairs is not None and job.prior is not None and 0.0 < job.frame.t_s - pairs.from_full_s < cfg.follow_for_s
+                and 3.0 * job.prior.sigma_h_m <= cfg.max_tracking_search_m)
+
+    def _follow(self, job: FrameJob, grey: np.ndarray, note: str | None) -> FrameWork | None:
+        """The frame located from the last fix's inliers carried into it by optical flow, each started where the
+        prior puts its landmark; None when that gives no fix the prior agrees with (the frame is then a full one)."""
+        sw = self.stopwatch
+        ids = self.flow.pairs.lm_id
+        if np.any(ids >= len(self.landmarks)):  # the map was rolled back under them
+            self.flow.forget()
+            return None
+        with sw("tracking"):
+            R_ned_cam = job.R_ned_body @ self.R_body_cam
+            pose = CameraPose(np.array([job.prior.p_ned_m[0], job.prior.p_ned_m[1], -job.alt_above_origin_m]), R_ned_cam)
+            guess_uv, front = pose.project(self.camera, self.landmarks.p_ned_m[ids].astype(float))
+            guess_uv[~front] = np.nan
+            followed = self.flow.follow(grey, guess_uv)
+        with sw("locating"):
+            fix = self.localiser.locate_followed(followed, job.frame.t_s, job.R_ned_body, job.alt_above_origin_m,
+                                                 **self._attitude_sigmas(job), min_kept=self.cfg.positioning.follow_min_kept)
+        if not isinstance(fix, Fix) or not self._agrees_with_prior(fix, job.prior):
+            self.flow.forget()
+            return None
+        self.flow.remember(grey, fix.inliers)
+        feats = Features(followed.uv_px, self.landmarks.descriptors[followed.lm_id], np.zeros(len(followed.lm_id), int), followed.scale)
+        return FrameWork(job, feats, None, fix, note)
+
+    def _agrees_with_prior(self, fix: Fix, prior: PositionPrior | None) -> bool:
+        """Whether ``fix`` is within the filter's gate of ``prior``: only such a fix's inliers are followed into the
+        next frames (a fix the filter refuses must not be taken again from its own pairs)."""
+        if prior is None:
+            return False
+        d2 = float(np.sum((fix.p_ned_m[:2] - prior.p_ned_m[:2]) ** 2))
+        var = prior.sigma_h_m**2 + 0.5 * float(np.trace(fix.cov_ned_m2[:2, :2])) + self.cfg.positioning.prior_floor_m**2
+        return d2 <= self.cfg.fusion.gate_chi2 * var
 
     def finish_frame(self, work: FrameWork) -> FrameResult:
         """Fuse the frame's fix (positioning) or compare it with the filter (mapping)."""

@@ -22,6 +22,7 @@ from auxgps.core.features import Features, greedy_one_to_one, hamming, pairs_wit
 from auxgps.core.geometry import cross_matrix
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.stopwatch import null_stopwatch
+from auxgps.core.tracking import Followed
 
 
 @dataclass(frozen=True)
@@ -56,6 +57,8 @@ class Fix:
     prior_share: float = 0.0
     map_source: str = "flight"
     t_mapped_s: float = np.nan  # the median time its inliers were first geotagged (NaN: not known, a loaded map's)
+    followed: bool = False  # located from an earlier fix's inliers carried here by optical flow, not a detection
+    inliers: Followed | None = None  # its inliers' pixels and landmarks, for the next frame to follow
 
     @property
     def sigma_h_rms_m(self) -> float:
@@ -294,13 +297,7 @@ class Localiser:
             return NoFix(t_s, f"best hypothesis has {best_support} supporting features", best_support, n_corr, n_feat)
         # Unbalanced: half the build time of a frame's features, the same nearest distances.
         feature_tree = cKDTree(features.uv_px, balanced_tree=False, compact_nodes=False)
-        prior_info = self._refine_prior_info
-        if tilt_sigma_rad is not None or heading_sigma_rad is not None:
-            prior_info = prior_info.copy()
-            if tilt_sigma_rad is not None:
-                prior_info[3, 3] = prior_info[4, 4] = 1.0 / max(tilt_sigma_rad, 1e-6) ** 2
-            if heading_sigma_rad is not None:
-                prior_info[5, 5] = 1.0 / max(heading_sigma_rad, 1e-6) ** 2
+        prior_info = self._prior_info(tilt_sigma_rad, heading_sigma_rad)
         view = _View(features, feature_tree, R_ned_cam, alt_above_origin_m, p_cand_ned_m @ R_ned_cam, prior_info,
                      spots(feature_tree, cfg.same_point_px / features.scale))
         verdict = self._choose(corr, view, prior, seeds, support, min_inliers, margin)
@@ -308,24 +305,80 @@ class Localiser:
             return NoFix(t_s, verdict[0], best_support, n_corr, n_feat, rivals_apart_m=verdict[1])
         if isinstance(verdict, str):
             return NoFix(t_s, verdict, best_support, n_corr, n_feat)
-        p, cov, inl = verdict.p, verdict.cov, verdict.inl
-        n_inl = int(inl.sum())
+        n_inl = int(verdict.inl.sum())
         if not tracking and verdict.explained < cfg.min_explained_acquire:
             return NoFix(t_s, f"acquisition: {verdict.explained:.0%} of the landmarks expected in view are seen", n_inl, n_corr, n_feat)
+        return self._fix(t_s, verdict, corr, features.uv_px[corr.feat_i], prior_info, n_corr, n_feat, features.scale, None)
+
+    def locate_followed(self, followed: Followed, t_s: float, R_ned_body: np.ndarray, alt_above_origin_m: float,
+                        tilt_sigma_rad: float | None = None, heading_sigma_rad: float | None = None,
+                        min_kept: float = 0.5) -> LocateResult:
+        """Locate a frame from pairs an earlier fix's inliers were carried into it by (:mod:`auxgps.core.tracking`).
+
+        They were one reading's inliers, so there is one hypothesis: the median of theirs. It is refined as a
+        full frame's readings are (:meth:`_refine`: the same model, the same inlier tolerance), over the pairs
+        within their agreement radius of it, and is a fix when at least ``min_kept`` of the pairs and
+        ``min_inliers`` stay inliers; else the flow lost them and the frame needs a full look.
+        """
+        cfg = self.cfg.positioning
+        n = len(followed.lm_id)
+        if n < cfg.min_inliers:
+            return NoFix(t_s, f"{n} landmarks followed, fewer than {cfg.min_inliers}", n_features=n)
+        if not (np.all(np.isfinite(R_ned_body)) and np.isfinite(alt_above_origin_m)):
+            return NoFix(t_s, "attitude or altitude is not finite", n_features=n)
+        R_ned_cam = R_ned_body @ self.R_body_cam
+        inlier_px = cfg.inlier_px / followed.scale
+        d = self.camera.pixels_to_rays_cam(followed.uv_px) @ R_ned_cam.T
+        L = self.map.p_ned_m[followed.lm_id].astype(float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (L[:, 2] + alt_above_origin_m) / d[:, 2]
+        ok = np.isfinite(t) & (t > 0.5)
+        d, L, t = d[ok], L[ok], t[ok]
+        lm_id, uv = followed.lm_id[ok], followed.uv_px[ok]
+        hyp = L[:, :2] - t[:, None] * d[:, :2]
+        tan_off = np.linalg.norm(d[:, :2], axis=1) / np.abs(d[:, 2])
+        tau = inlier_px / self.camera.focal_px * t * np.linalg.norm(d, axis=1) + 2.0 * self.cfg.noise.altitude_m * tan_off
+        corr = _Correspondences(np.arange(len(lm_id)), lm_id, L, d, hyp, tau)
+        p0 = np.array([*np.median(hyp, axis=0), -alt_above_origin_m]) if len(hyp) else np.full(3, np.nan)
+        members = np.linalg.norm(hyp - p0[:2], axis=1) <= tau
+        prior_info = self._prior_info(tilt_sigma_rad, heading_sigma_rad)
+        fit = self._refine(p0, corr, members, alt_above_origin_m, 1.0 / followed.scale, prior_info)
+        n_inl = int(fit.inl.sum())
+        if n_inl < max(cfg.min_inliers, min_kept * n) or not (np.all(np.isfinite(fit.p)) and np.all(np.isfinite(fit.cov))):
+            return NoFix(t_s, f"{n_inl} of {n} followed landmarks stay inliers", n_inl, n, n)
+        return self._fix(t_s, fit, corr, uv, prior_info, n, n, followed.scale, followed.from_full_s)
+
+    # -- steps -------------------------------------------------------------------------------------------------
+
+    def _prior_info(self, tilt_sigma_rad: float | None, heading_sigma_rad: float | None) -> np.ndarray:
+        """What the refinement knows of its unknowns beforehand, with the frame's own attitude sigmas where given."""
+        prior_info = self._refine_prior_info
+        if tilt_sigma_rad is not None or heading_sigma_rad is not None:
+            prior_info = prior_info.copy()
+            if tilt_sigma_rad is not None:
+                prior_info[3, 3] = prior_info[4, 4] = 1.0 / max(tilt_sigma_rad, 1e-6) ** 2
+            if heading_sigma_rad is not None:
+                prior_info[5, 5] = 1.0 / max(heading_sigma_rad, 1e-6) ** 2
+        return prior_info
+
+    def _fix(self, t_s: float, reading, corr: _Correspondences, uv_px: np.ndarray, prior_info: np.ndarray, n_corr: int,
+             n_feat: int, scale: float, from_full_s: float | None) -> Fix:
+        """The :class:`Fix` of a reading (or a fit) over ``corr``, whose pixels are ``uv_px`` (K, 2);
+        ``from_full_s``: when the full frame its pairs were followed from was taken (None: it is a full one)."""
+        inl = reading.inl
         # The turn as the image alone says it: the posterior's information less the prior's (scalar marginals).
         turn = turn_var = None
-        info_image = 1.0 / verdict.turn_var_rad2 - prior_info[5, 5] if verdict.turn_var_rad2 > 0 else 0.0
+        info_image = 1.0 / reading.turn_var_rad2 - prior_info[5, 5] if reading.turn_var_rad2 > 0 else 0.0
         if info_image > 0.1 * prior_info[5, 5]:
             turn_var = 1.0 / info_image
-            turn = verdict.turn_rad / verdict.turn_var_rad2 * turn_var
+            turn = reading.turn_rad / reading.turn_var_rad2 * turn_var
         ids = corr.lm_id[inl]
         prior_share = float(np.mean(self.map.source[ids] != 0)) if len(ids) else 0.0
         t_first_s = self.map.t_first_s[ids]
         t_first_s = t_first_s[np.isfinite(t_first_s)]
         t_mapped_s = float(np.median(t_first_s)) if len(t_first_s) else np.nan
-        return Fix(t_s, p, cov, n_inl, n_corr, n_feat, turn, turn_var, prior_share, self.map.source_name(ids), t_mapped_s)
-
-    # -- steps -------------------------------------------------------------------------------------------------
+        return Fix(t_s, reading.p, reading.cov, int(inl.sum()), n_corr, n_feat, turn, turn_var, prior_share, self.map.source_name(ids),
+                   t_mapped_s, from_full_s is not None, Followed(uv_px[inl], ids, scale, t_s if from_full_s is None else from_full_s))
 
     def _choose(self, corr: _Correspondences, view: _View, prior, seeds, support, min_inliers: int, margin: float):
         """The most probable reading of the frame, or a reason (str) why there is none; an ambiguous frame's reason

@@ -7,6 +7,8 @@ flies, with a :class:`StageClock` passed in as its stopwatch; the stages are exc
 
 - checking: the frame's grey conversion and :class:`auxgps.core.frame_check.FrameCheck` (frozen, covered,
   blinded, blurred);
+- tracking: a followed frame's optical flow (:mod:`auxgps.core.tracking`: the last fix's inliers carried into it,
+  in place of detection and matching);
 - detection: :meth:`FeatureDetector.detect` (ORB, Harris filter, sub-pixel refinement);
 - matching: finding candidate landmarks (the spatial index) and pairing features with them;
 - solving: the rest of :meth:`Localiser.locate` (consensus, refinement, rival check) and, for a mapping frame,
@@ -53,7 +55,7 @@ from auxgps.sim.render import Renderer
 from auxgps.sim.texture import gravel_texture
 from auxgps.sim.world import Cube, World, _color_to_bgr, load_world
 
-STAGES = ("checking", "detection", "matching", "solving", "filtering")
+STAGES = ("checking", "tracking", "detection", "matching", "solving", "filtering")
 
 #: The thesis' four 0.5 m cubes (config/worlds/cubes4_0.5m_different.yaml): (north, east, colour, yaw).
 _CUBES = ((2.0, 1.0, "red", 0.0), (-5.0, -4.0, "blue", 20.0), (-6.0, 6.0, "green", 35.0), (5.0, -6.0, "white", 50.0))
@@ -147,6 +149,8 @@ def bench_report(fig: dict) -> str:
         f"median {ms(pos['median_ms'])} ms, p99 {ms(pos['p99_ms'])} ms, min {ms(pos['min_ms'])}, max {ms(pos['max_ms'])} "
         f"(CPU median {ms(pos['cpu_ms']['median'])} ms)",
         "  stages, median ms: " + ", ".join(f"{k} {ms(v['median'])}" for k, v in pos["per_frame_ms"].items() if k != "total"),
+        f"  mean {ms(pos['mean_ms'])} ms; followed by optical flow {pos['followed']['frames']} frames ({pos['followed']['share']:.0%}), "
+        f"median {ms(pos['followed']['median_ms'])} ms; full frames median {ms(pos['followed']['full_median_ms'])} ms",
         f"  fixes: RMS {m(pos['fixes']['rms_m'])} m, p95 {m(pos['fixes']['p95_m'])} m, max {m(pos['fixes']['max_m'])} m, availability {pos['fixes']['availability']:.2f}",
         f"  capture to GPS_INPUT: median {ms(pos['latency_ms']['median'])} ms, p99 {ms(pos['latency_ms']['p99'])} ms, max {ms(pos['latency_ms']['max'])} ms",
         f"mapping frames ({mp['frames']}, {mp['features_per_frame']:.0f} features/frame, {mp['landmarks']} landmarks made): "
@@ -211,6 +215,8 @@ class StageClock:
         ms, self.ms = self.ms, {}
         row = {"checking": ms.get("checking", 0.0), "detection": ms.get("detection", 0.0), "matching": ms.get("matching", 0.0),
                "solving": ms.get("locating", 0.0) + ms.get("mapping", 0.0)}
+        if "tracking" in ms:
+            row["tracking"] = ms["tracking"]
         if "filtering" in ms:
             row["filtering"] = ms["filtering"]
         return row
@@ -324,6 +330,7 @@ class _Replay:
     n_frames: int
     n_fixes: int
     cpu_ms: list = field(default_factory=list)  # per frame, this thread's CPU time for beginning and processing it
+    followed: list = field(default_factory=list)  # per frame: its fix came from following the last one's inliers
 
 
 class _Run:
@@ -378,6 +385,7 @@ def _replay_positioning(script: _PositioningScript, world, maps: list[LandmarkMa
             rec.cpu_ms.append((time.thread_time() - c0) * 1e3)
             rec.rows.append({**run.clock.take(), "filtering": 0.0})
             rec.n_features.append(len(work.features))
+            rec.followed.append(isinstance(work.located, Fix) and work.located.followed)
             rec.n_frames += 1
             if isinstance(work.located, Fix):
                 rec.n_fixes += 1
@@ -444,6 +452,14 @@ def _fix_stats(err_m: list, n_frames: int) -> dict:
     }
 
 
+def _split_ms(rows: list[dict], followed: list[bool]) -> dict:
+    """How many frames followed (optical flow) and the median total ms of those and of the full ones."""
+    total = np.array([sum(r.values()) for r in rows])
+    f = np.array(followed, bool)[: len(total)]
+    med = lambda x: float(np.median(x)) if len(x) else None  # noqa: E731
+    return {"frames": int(f.sum()), "share": float(f.mean()) if len(f) else 0.0, "median_ms": med(total[f]), "full_median_ms": med(total[~f])}
+
+
 def _replay_summary(rec: _Replay, landmarks: LandmarkMap) -> dict:
     stages = _stage_table(rec.rows)
     mem = landmarks.memory_bytes()
@@ -453,7 +469,10 @@ def _replay_summary(rec: _Replay, landmarks: LandmarkMap) -> dict:
         "min_ms": stages["total"]["min"],
         "max_ms": stages["total"]["max"],
         "features_per_frame": float(np.median(rec.n_features)) if rec.n_features else 0.0,
+        "mean_ms": float(np.mean([sum(r.values()) for r in rec.rows])) if rec.rows else None,
         "per_frame_ms": stages,
+        # Frames that followed the last fix's inliers by optical flow, and those that were full ones (detected, matched)
+        "followed": _split_ms(rec.rows, rec.followed),
         "fixes": _fix_stats(rec.fix_err_m, rec.n_frames),
         "frames": rec.n_frames,
         "map_landmarks": len(landmarks),

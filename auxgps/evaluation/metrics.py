@@ -210,6 +210,7 @@ def _summarize_pooled(records: list[RunRecord]) -> dict:
     fx["over_0_5m"] = int(np.sum(np.linalg.norm(fix_ne, axis=1) > 0.5))
     fx["eligible_frames"] = int(n_elig)
     fx["positioning_frames"] = int(sum(r.n_positioning_frames for r in records))
+    fx["followed"] = int(sum(int(np.sum(r.fix_followed)) for r in records))  # of them from optical flow, not a detection
     all_ms = np.concatenate([np.concatenate([r.mapping_ms, r.positioning_ms]) for r in records])
     n_feat = np.concatenate([r.features_per_frame for r in records])
     pos_ms = np.concatenate([r.positioning_ms for r in records])

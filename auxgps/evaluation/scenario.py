@@ -46,6 +46,7 @@ class RunRecord:
     fused_vel_err_ne_m_s: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (O, 2) velocity - truth
     fix_applied_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (F,) when the filter got each fix (NaN: never)
     fix_over_patch: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (F,) captured over a featureless patch
+    fix_followed: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (F,) from the last fix's inliers by optical flow
     fused_height_agl_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (O,) the true height above ground
     fused_over_patch: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (O,) over a featureless patch
     gps_fix_type: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # (O,) GPS_INPUT's fix_type (0: none sent)
@@ -238,7 +239,7 @@ class _Scored:
         self.su, self.traj, self.denied_from = su, traj, float(denied_from_s)
         self.dt = traj.t_s[1] - traj.t_s[0]
         self.fix_applied, self.fix_err, self.fix_sigma, self.fix_gated, self.pos_ms, self.n_feat = [], [], [], [], [], []
-        self.fix_over_patch = []
+        self.fix_over_patch, self.fix_followed = [], []
         self.fused_t, self.fused_err, self.fused_cov, self.fused_vel_err = [], [], [], []
         self.height_agl, self.over_patch, self.fix_type, self.h_acc = [], [], [], []
         self.reasons: dict[str, int] = {}
@@ -261,6 +262,7 @@ class _Scored:
             self.fix_gated.append(not res.decision.accepted)
             self.fix_applied.append(t_capture + latency_s)
             self.fix_over_patch.append(self._over_patch(seen.i))
+            self.fix_followed.append(bool(res.located.followed))
         else:
             key = _reason_key(res.reason)
             self.reasons[key] = self.reasons.get(key, 0) + 1
@@ -306,6 +308,7 @@ class _Scored:
             fused_vel_err_ne_m_s=np.array(self.fused_vel_err).reshape(-1, 2),
             fix_applied_t_s=np.array(fix_applied, float),
             fix_over_patch=np.array(self.fix_over_patch, bool),
+            fix_followed=np.array(self.fix_followed, bool),
             fused_height_agl_m=np.array(self.height_agl),
             fused_over_patch=np.array(self.over_patch, bool),
             gps_fix_type=np.array(self.fix_type, int),
