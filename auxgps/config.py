@@ -161,8 +161,12 @@ class PositioningConfig:
     # fix's inliers into itself by optical flow instead (auxgps.core.tracking); 0: every frame is a full one.
     # At 30 frames a second two frames in three are followed, at 10 or fewer none.
     follow_for_s: NonNegative = 0.08
-    follow_window_px: Annotated[int, Field(ge=5, le=63)] = 21  # the Lucas-Kanade window
-    follow_levels: Annotated[int, Field(ge=0, le=6)] = 3  # pyramid levels above the image
+    # The Lucas-Kanade window and pyramid levels above the image: each point starts where the prior puts its
+    # landmark, a few pixels off, so a small window and two levels reach it (a 1280x720 frame's pyramid alone
+    # costs 5 ms at 21 px and 3 levels).
+    follow_window_px: Annotated[int, Field(ge=5, le=63)] = 11
+    follow_levels: Annotated[int, Field(ge=0, le=6)] = 2
+    follow_max_points: Annotated[int, Field(ge=4)] = 150  # of a fix's inliers, this many spread over the image are followed
     follow_max_fb_px: Positive = 0.5  # how far the flow run backwards may end from where a point started
     follow_min_kept: Probability = 0.5  # the share of the followed pairs that must stay inliers for a fix
 

@@ -250,7 +250,7 @@ class Estimator:
         self.mapper = Mapper(cfg, self.camera, self.R_body_cam, self.landmarks, self.stopwatch)
         self.localiser = Localiser(cfg, self.camera, self.R_body_cam, self.landmarks, self.stopwatch)
         pos = cfg.positioning
-        self.flow = InlierFlow(pos.follow_window_px, pos.follow_levels, pos.follow_max_fb_px)  # the last fix's inliers
+        self.flow = InlierFlow(pos.follow_window_px, pos.follow_levels, pos.follow_max_fb_px, pos.follow_max_points)  # the last fix's inliers
         self.supervisor = Supervisor(self.options.supervisor)
         self.heading = HeadingTracker(cfg.heading) if cfg.heading.solve else None
         self._map_turned_to: float | None = None  # the heading error the map was last geotagged again with
@@ -258,8 +258,8 @@ class Estimator:
         # an hour): times, and (its estimate if the heading is off, that estimate's one sigma, the correction taken
         # out), rad. See _map_heading_sigma_m.
         self._mapped_t_s: list[float] = []
-        self._mapped_frame_t_s = -np.inf  # when the last frame to be mapped was taken
         self._mapped_heading: list[tuple[float, float, float]] = []
+        self._mapped_frame_t_s = -np.inf  # when the last frame to be mapped was taken (mapping.min_interval_s)
         # The RMS distance of a point of the footprint from its centre, per metre of height (a camera constant).
         cam = self.camera
         self._footprint_rms_per_m = float(np.sqrt((cam.width_px**2 + cam.height_px**2) / 12.0)) / cam.focal_px

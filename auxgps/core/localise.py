@@ -284,13 +284,7 @@ class Localiser:
         if len(np.unique(feat_i)) < cfg.min_inliers:
             return NoFix(t_s, f"{n_corr} correspondences inside the search area", n_correspondences=n_corr, n_features=n_feat)
 
-        # Agreement radius of each correspondence on the ground: the pixel tolerance at its range, plus
-        # what a barometer error does to an off-nadir ray.
-        range_m = t * np.linalg.norm(d, axis=1)
-        tan_off = np.linalg.norm(d[:, :2], axis=1) / np.abs(d[:, 2])
-        tau = inlier_px / self.camera.focal_px * range_m + 2.0 * self.cfg.noise.altitude_m * tan_off
-
-        corr = _Correspondences(feat_i, lm_id, L, d, hyp, tau)
+        corr = _Correspondences(feat_i, lm_id, L, d, hyp, self._agreement_radius_m(d, t, inlier_px))
         seeds, support = self._consensus(corr)
         best_support = int(support.max())
         if best_support < min_inliers:
@@ -313,9 +307,9 @@ class Localiser:
     def locate_followed(self, followed: Followed, t_s: float, R_ned_body: np.ndarray, alt_above_origin_m: float,
                         tilt_sigma_rad: float | None = None, heading_sigma_rad: float | None = None,
                         min_kept: float = 0.5) -> LocateResult:
-        """Locate a frame from pairs an earlier fix's inliers were carried into it by (:mod:`auxgps.core.tracking`).
+        """Locate a frame from an earlier fix's inliers, carried into it by optical flow (:mod:`auxgps.core.tracking`).
 
-        They were one reading's inliers, so there is one hypothesis: the median of theirs. It is refined as a
+        They were one reading's inliers, so there is one hypothesis: the median of the pairs'. It is refined as a
         full frame's readings are (:meth:`_refine`: the same model, the same inlier tolerance), over the pairs
         within their agreement radius of it, and is a fix when at least ``min_kept`` of the pairs and
         ``min_inliers`` stay inliers; else the flow lost them and the frame needs a full look.
@@ -336,11 +330,9 @@ class Localiser:
         d, L, t = d[ok], L[ok], t[ok]
         lm_id, uv = followed.lm_id[ok], followed.uv_px[ok]
         hyp = L[:, :2] - t[:, None] * d[:, :2]
-        tan_off = np.linalg.norm(d[:, :2], axis=1) / np.abs(d[:, 2])
-        tau = inlier_px / self.camera.focal_px * t * np.linalg.norm(d, axis=1) + 2.0 * self.cfg.noise.altitude_m * tan_off
-        corr = _Correspondences(np.arange(len(lm_id)), lm_id, L, d, hyp, tau)
+        corr = _Correspondences(np.arange(len(lm_id)), lm_id, L, d, hyp, self._agreement_radius_m(d, t, inlier_px))
         p0 = np.array([*np.median(hyp, axis=0), -alt_above_origin_m]) if len(hyp) else np.full(3, np.nan)
-        members = np.linalg.norm(hyp - p0[:2], axis=1) <= tau
+        members = np.linalg.norm(hyp - p0[:2], axis=1) <= corr.tau
         prior_info = self._prior_info(tilt_sigma_rad, heading_sigma_rad)
         fit = self._refine(p0, corr, members, alt_above_origin_m, 1.0 / followed.scale, prior_info)
         n_inl = int(fit.inl.sum())
@@ -349,6 +341,13 @@ class Localiser:
         return self._fix(t_s, fit, corr, uv, prior_info, n, n, followed.scale, followed.from_full_s)
 
     # -- steps -------------------------------------------------------------------------------------------------
+
+    def _agreement_radius_m(self, d: np.ndarray, t: np.ndarray, inlier_px: float) -> np.ndarray:
+        """How far apart (m) two agreeing hypotheses may be, per correspondence of ray ``d`` (K, 3) at ``t`` (K,)
+        along it: the pixel tolerance at its range, plus what a barometer error does to an off-nadir ray."""
+        range_m = t * np.linalg.norm(d, axis=1)
+        tan_off = np.linalg.norm(d[:, :2], axis=1) / np.abs(d[:, 2])
+        return inlier_px / self.camera.focal_px * range_m + 2.0 * self.cfg.noise.altitude_m * tan_off
 
     def _prior_info(self, tilt_sigma_rad: float | None, heading_sigma_rad: float | None) -> np.ndarray:
         """What the refinement knows of its unknowns beforehand, with the frame's own attitude sigmas where given."""

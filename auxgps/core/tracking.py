@@ -33,12 +33,14 @@ class InlierFlow:
     """The last fix's inlier pixels and landmarks, and the grey image they are in.
 
     ``window_px``, ``levels``: the Lucas-Kanade window and pyramid levels above the image; ``max_fb_px``: how
-    far the backward flow may end from where a point started."""
+    far the backward flow may end from where a point started; ``max_points``: how many pairs are kept, spread over
+    the image (the flow's time is in proportion to them, and a fix needs far fewer)."""
 
-    def __init__(self, window_px: int = 21, levels: int = 3, max_fb_px: float = 0.5) -> None:
+    def __init__(self, window_px: int = 11, levels: int = 2, max_fb_px: float = 0.5, max_points: int = 150) -> None:
         self.win = (int(window_px), int(window_px))
         self.levels = int(levels)
         self.max_fb_px = float(max_fb_px)
+        self.max_points = int(max_points)
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03)
         self.forget()
 
@@ -48,7 +50,11 @@ class InlierFlow:
         self.pairs: Followed | None = None
 
     def remember(self, grey: np.ndarray, pairs: Followed) -> None:
-        """``pairs`` are in ``grey`` (the frame's full-resolution grey image; kept, not copied)."""
+        """``pairs`` are in ``grey`` (the frame's full-resolution grey image; kept, not copied); ``max_points`` of
+        them at most, spread over it (:func:`spread_over`)."""
+        if len(pairs.lm_id) > self.max_points:
+            keep = spread_over(pairs.uv_px, grey.shape[1], grey.shape[0], self.max_points)
+            pairs = Followed(pairs.uv_px[keep], pairs.lm_id[keep], pairs.scale, pairs.from_full_s)
         self._grey, self.pairs = grey, pairs
 
     def follow(self, grey: np.ndarray, guess_uv_px: np.ndarray) -> Followed:
@@ -74,3 +80,17 @@ class InlierFlow:
         inside = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
         keep = ok1.ravel().astype(bool) & ok2.ravel().astype(bool) & (fb_px <= self.max_fb_px) & inside & ~bad_guess
         return Followed(uv[keep], pairs.lm_id[keep], pairs.scale, pairs.from_full_s)
+
+
+def spread_over(uv_px: np.ndarray, width_px: int, height_px: int, n: int, cells: int = 4) -> np.ndarray:
+    """Indices of ``n`` of the points ``uv_px`` (K, 2), spread over a ``cells`` x ``cells`` grid of the image: the
+    first of every cell, then the second of every cell, and so on (a fix's geometry wants the whole image, not the
+    corner its strongest texture is in)."""
+    col = np.clip((uv_px[:, 0] * cells / width_px).astype(int), 0, cells - 1)
+    row = np.clip((uv_px[:, 1] * cells / height_px).astype(int), 0, cells - 1)
+    cell = row * cells + col
+    by_cell = np.argsort(cell, kind="stable")
+    starts = np.searchsorted(cell[by_cell], np.arange(cells * cells))
+    rank = np.empty(len(cell), int)
+    rank[by_cell] = np.arange(len(cell)) - starts[cell[by_cell]]  # a point's place among its cell's
+    return np.sort(np.lexsort((cell, rank))[:n])
