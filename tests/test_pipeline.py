@@ -504,9 +504,8 @@ def test_detection_scale_follows_the_range_the_map_saw_its_landmarks_at(camera, 
     assert loc.detection_scale(8.0, prior) == 1.0
 
 
-@pytest.mark.slow
-def test_short_mapping_then_positioning_flight(pipeline):
-    """A small survey over two different cubes, then a crossing flight without GPS: per-frame thresholds."""
+def two_cubes_crossed():
+    """Two different cubes, a small survey over them and a crossing flight: (world, sim config)."""
     world = make_world(
         [
             {"east_m": 1.0, "north_m": 1.0, "size_m": 1.0, "color": "red"},
@@ -514,7 +513,13 @@ def test_short_mapping_then_positioning_flight(pipeline):
         ]
     )
     small = dict(north_min_m=-4.0, north_max_m=4.0, east_min_m=-4.0, east_max_m=4.0, spacing_m=2.0)
-    sim = parse_as(SimConfig, {"mapping": small, "positioning": dict(small, legs="ew", offset_m=1.0)}, "test")
+    return world, parse_as(SimConfig, {"mapping": small, "positioning": dict(small, legs="ew", offset_m=1.0)}, "test")
+
+
+@pytest.mark.slow
+def test_short_mapping_then_positioning_flight(pipeline):
+    """A small survey over two different cubes, then a crossing flight without GPS: per-frame thresholds."""
+    world, sim = two_cubes_crossed()
     rec = run_once(world, 12.0, 3.0, 11, pipeline, sim)
     lm_err = np.linalg.norm(rec.landmark_err_ne_m, axis=1)
     fix_err = np.linalg.norm(rec.fix_err_ne_m, axis=1)

@@ -4,16 +4,15 @@ import cv2
 import numpy as np
 import pytest
 
-from auxgps.config import parse_as
+from auxgps.config import load_pipeline_config
 from auxgps.core.camera import CameraPose
 from auxgps.core.geometry import R_BODY_CAM_DOWN, R_ned_body_from_euler
 from auxgps.core.localise import Fix, Localiser, NoFix
 from auxgps.core.tracking import Followed, InlierFlow, spread_over
 from auxgps.evaluation.scenario import run_once
-from auxgps.sim.flight import SimConfig
 from auxgps.sim.texture import gravel_texture
-from tests.conftest import make_world
-from tests.test_pipeline import synthetic_map
+from tests.conftest import REPO
+from tests.test_pipeline import synthetic_map, two_cubes_crossed
 
 
 def textured(seed: int = 4) -> np.ndarray:
@@ -103,18 +102,12 @@ def test_pairs_the_flow_lost_give_no_fix_and_the_frame_is_a_full_one(camera, pip
 
 
 @pytest.mark.slow
-def test_at_30_frames_a_second_positioning_follows_two_frames_in_three_and_mapping_keeps_to_10(pipeline):
+def test_at_30_frames_a_second_positioning_follows_two_frames_in_three_and_mapping_keeps_to_10():
     """The estimator follows a full frame's inliers into the frames of the next 0.08 s (positioning.follow_for_s)
     and maps at most a frame every 0.08 s (mapping.min_interval_s): at 30 frames a second two positioning frames
     in three are followed, as accurate as the full ones, and the survey maps about as many frames as at 10."""
-    world = make_world(
-        [
-            {"east_m": 1.0, "north_m": 1.0, "size_m": 1.0, "color": "red"},
-            {"east_m": -2.0, "north_m": -2.0, "size_m": 1.0, "color": "blue", "yaw_deg": 30},
-        ]
-    )
-    small = dict(north_min_m=-4.0, north_max_m=4.0, east_min_m=-4.0, east_max_m=4.0, spacing_m=2.0)
-    sim = parse_as(SimConfig, {"mapping": small, "positioning": dict(small, legs="ew", offset_m=1.0)}, "test")
+    pipeline = load_pipeline_config(REPO / "config" / "pipeline" / "follow_30fps.yaml")
+    world, sim = two_cubes_crossed()
     at30 = run_once(world, 12.0, 30.0, 11, pipeline, sim)
     at10 = run_once(world, 12.0, 10.0, 11, pipeline, sim, mapping_fps=10.0)
     followed = at30.fix_followed
