@@ -49,7 +49,7 @@ from auxgps.core.geometry import LocalFrame, R_body_cam_from_mount, R_ned_body_f
 from auxgps.core.gps_output import GpsOutput, gps_output
 from auxgps.core.heading import HeadingEstimate, HeadingTracker, MotionView, ground_points_ne
 from auxgps.core.landmarks import LandmarkMap
-from auxgps.core.localise import Fix, Localiser, NoFix, PositionPrior
+from auxgps.core.localise import Fix, Localiser, NoFix, PositionPrior, prior_m2
 from auxgps.core.mapping import Mapper, MappingResult
 from auxgps.core.nav import NavSample
 from auxgps.core.stopwatch import null_stopwatch
@@ -741,11 +741,7 @@ class Estimator:
     def _agrees_with_prior(self, fix: Fix, prior: PositionPrior | None) -> bool:
         """Whether ``fix`` is within the filter's gate of ``prior``: only such a fix's inliers are followed into the
         next frames (a fix the filter refuses must not be taken again from its own pairs)."""
-        if prior is None:
-            return False
-        d2 = float(np.sum((fix.p_ned_m[:2] - prior.p_ned_m[:2]) ** 2))
-        var = prior.sigma_h_m**2 + 0.5 * float(np.trace(fix.cov_ned_m2[:2, :2])) + self.cfg.positioning.prior_floor_m**2
-        return d2 <= self.cfg.fusion.gate_chi2 * var
+        return prior is not None and prior_m2(fix.p_ned_m, fix.cov_ned_m2, prior, self.cfg.positioning.prior_floor_m) <= self.cfg.fusion.gate_chi2
 
     def finish_frame(self, work: FrameWork) -> FrameResult:
         """Fuse the frame's fix (positioning) or compare it with the filter (mapping)."""

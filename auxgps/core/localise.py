@@ -111,14 +111,15 @@ def _prefix_spread_order(n: int) -> np.ndarray:
     return np.argsort(rev, kind="stable")
 
 
-def _prior_m2(reading, prior: PositionPrior | None, floor_m: float) -> float:
-    """Squared distance of a reading from the prior, in units of their combined horizontal sigma (0 without a
-    prior). ``floor_m`` is added in quadrature: a filter fed a few biased fixes can believe itself to a few
-    centimetres while it is decimetres off, and must not out-vote what the image shows."""
+def prior_m2(p_ned_m: np.ndarray, cov_ned_m2: np.ndarray, prior: PositionPrior | None, floor_m: float) -> float:
+    """Squared distance of a position ``p_ned_m`` (covariance ``cov_ned_m2``) from the prior, in units of their
+    combined horizontal sigma (0 without a prior). ``floor_m`` is added in quadrature: a filter fed a few biased
+    fixes can believe itself to a few centimetres while it is decimetres off, and must not out-vote what the image
+    shows."""
     if prior is None:
         return 0.0
-    d2 = float(np.sum((reading.p[:2] - prior.p_ned_m[:2]) ** 2))
-    return d2 / (prior.sigma_h_m**2 + float(np.trace(reading.cov[:2, :2])) / 2.0 + floor_m**2)
+    d2 = float(np.sum((p_ned_m[:2] - prior.p_ned_m[:2]) ** 2))
+    return d2 / (prior.sigma_h_m**2 + float(np.trace(cov_ned_m2[:2, :2])) / 2.0 + floor_m**2)
 
 
 @dataclass(frozen=True)
@@ -434,7 +435,7 @@ class Localiser:
             covered |= np.linalg.norm(seed_hyp - r.p[:2], axis=1) <= seed_tau  # NaN positions cover none
             if int(r.inl.sum()) >= 2 and np.all(np.isfinite(r.p)) and np.all(np.isfinite(r.cov)):
                 readings.append(r)
-                lls.append(r.score - 0.5 * r.attitude_m2 - 0.5 * _prior_m2(r, prior, cfg.prior_floor_m))
+                lls.append(r.score - 0.5 * r.attitude_m2 - 0.5 * prior_m2(r.p, r.cov, prior, cfg.prior_floor_m))
         n_inl = np.array([int(r.inl.sum()) for r in readings], int)
         if not np.any(n_inl >= min_inliers):
             return f"no hypothesis keeps {min_inliers} inliers after refinement"
