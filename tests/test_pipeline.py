@@ -602,6 +602,46 @@ def test_pairs_within_equals_brute_force_in_order(monkeypatch, radix):
     assert i.dtype == j.dtype == np.int64
 
 
+@pytest.mark.parametrize("radix", [True, False])
+def test_pairs_within_unordered_are_the_same_pairs_and_pair_order_orders_them(monkeypatch, radix):
+    """``ordered=False`` gives the same set of pairs in the trees' order; :func:`pair_order` puts any subset of
+    them in order of i then j, as the mapper does with the few it keeps."""
+    import auxgps.core.features as features
+
+    if not radix:
+        monkeypatch.setattr(features, "_RADIX_SORTABLE", 0)
+    rng = np.random.default_rng(12)
+    a = rng.uniform(0, 200, (300, 2)).round()
+    b = rng.uniform(0, 200, (500, 2)).round()
+    i, j = features.pairs_within(a, b, 10.0)
+    iu, ju = features.pairs_within(a, b, 10.0, ordered=False)
+    assert set(zip(iu.tolist(), ju.tolist())) == set(zip(i.tolist(), j.tolist()))
+    keep = rng.random(len(iu)) < 0.1
+    order = features.pair_order(iu[keep], ju[keep], len(a), len(b))
+    ref = np.lexsort((ju[keep], iu[keep]))
+    np.testing.assert_array_equal(iu[keep][order], iu[keep][ref])
+    np.testing.assert_array_equal(ju[keep][order], ju[keep][ref])
+
+
+def test_hamming_pairs_is_hamming_of_the_gathered_rows():
+    """Word by word, including the largest distance (every bit differs: 256, past a byte), and by the byte table
+    for descriptors of another length."""
+    from auxgps.core.features import hamming, hamming_pairs
+
+    rng = np.random.default_rng(5)
+    a = rng.integers(0, 256, (50, 32), dtype=np.uint8)
+    b = rng.integers(0, 256, (70, 32), dtype=np.uint8)
+    b[0] = ~a[0]
+    ia, ib = rng.integers(0, 50, 1000), rng.integers(0, 70, 1000)
+    ia[0], ib[0] = 0, 0
+    got = hamming_pairs(a, ia, b, ib)
+    np.testing.assert_array_equal(got, hamming(a[ia], b[ib]))
+    assert got[0] == 256 and got.dtype == np.int32
+    a16, b16 = a[:, :16], b[:, :16]
+    np.testing.assert_array_equal(hamming_pairs(a16, ia, b16, ib), hamming(a16[ia], b16[ib]))
+    assert len(hamming_pairs(a, np.zeros(0, int), b, np.zeros(0, int))) == 0
+
+
 def _greedy_loop(a, b):
     used_a, used_b, kept = set(), set(), []
     for k, (x, y) in enumerate(zip(a.tolist(), b.tolist())):

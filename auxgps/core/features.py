@@ -192,25 +192,48 @@ def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1, dtype=np.int32)
 
 
-def pairs_within(a_px: np.ndarray, b_px: np.ndarray, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """Every (i, j) with ``|a_i - b_j| <= radius_px``, for (N, 2) and (M, 2) pixels, ordered by i then j.
+def hamming_pairs(a: np.ndarray, ia: np.ndarray, b: np.ndarray, ib: np.ndarray) -> np.ndarray:
+    """Hamming distances of the pairs ``(a[ia[k]], b[ib[k]])`` of (N, 32) and (M, 32) uint8 descriptors -> (K,)
+    int32: ``hamming(a[ia], b[ib])`` without gathering the rows. Each 64-bit word is gathered and counted on its
+    own (four 8-byte gathers cost a quarter of one 32-byte-row gather over tens of thousands of pairs)."""
+    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
+    if not (a.dtype == np.uint8 and b.dtype == np.uint8 and a.ndim == b.ndim == 2 and a.shape[1] == b.shape[1] == DESCRIPTOR_BYTES):
+        return hamming(a[ia], b[ib])
+    a64, b64 = a.view(np.uint64), b.view(np.uint64)
+    out = np.zeros(len(ia), np.uint16)
+    for k in range(a64.shape[1]):
+        out += np.bitwise_count(a64[:, k][ia] ^ b64[:, k][ib])
+    return out.astype(np.int32)
+
+
+def pairs_within(a_px: np.ndarray, b_px: np.ndarray, radius_px: float, ordered: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Every (i, j) with ``|a_i - b_j| <= radius_px``, for (N, 2) and (M, 2) pixels, ordered by i then j (in the
+    k-d trees' order with ``ordered=False``: a caller that keeps few of them puts those in order, with
+    :func:`pair_order`, for less).
 
     Found through k-d trees, so the cost follows the pairs found rather than N * M. The trees are built
     unbalanced (sliding midpoint splits, no median search: half the build time for a frame's pixels, and the
-    same pairs), and the pairs are put in order by two stable sorts of 16-bit indices, j then i (NumPy sorts
-    those by radix, in linear time), where a sort of (i, j) keys was the largest part of the cost.
+    same pairs).
     """
     if len(a_px) == 0 or len(b_px) == 0:
         return np.zeros(0, int), np.zeros(0, int)
     a_tree = cKDTree(a_px, balanced_tree=False, compact_nodes=False)
     found = a_tree.sparse_distance_matrix(cKDTree(b_px, balanced_tree=False, compact_nodes=False), radius_px, output_type="ndarray")
-    i, j = found["i"], found["j"]
-    if max(len(a_px), len(b_px)) <= _RADIX_SORTABLE:
+    i, j = found["i"].astype(np.int64), found["j"].astype(np.int64)
+    if not ordered:
+        return i, j
+    order = pair_order(i, j, len(a_px), len(b_px))
+    return i[order], j[order]
+
+
+def pair_order(i: np.ndarray, j: np.ndarray, n_a: int, n_b: int) -> np.ndarray:
+    """The permutation that puts pairs ``(i[k], j[k])`` (``i < n_a``, ``j < n_b``, no pair twice) in order of i,
+    then j: two stable sorts of 16-bit indices where they fit (NumPy sorts those by radix, in linear time), else
+    one sort of a unique key per pair."""
+    if max(n_a, n_b) <= _RADIX_SORTABLE:
         by_j = np.argsort(j.astype(np.uint16), kind="stable")
-        order = by_j[np.argsort(i[by_j].astype(np.uint16), kind="stable")]
-    else:
-        order = np.argsort(i * len(b_px) + j)  # one key per pair, unique: the (i, j) order in one sort
-    return i[order].astype(np.int64), j[order].astype(np.int64)
+        return by_j[np.argsort(i[by_j].astype(np.uint16), kind="stable")]
+    return np.argsort(i * n_b + j)
 
 
 #: Up to this many pairs, :func:`greedy_one_to_one` takes them one by one; beyond, in rounds of array work. Each

@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from auxgps.core.camera import CameraPose, PinholeCamera
-from auxgps.core.features import Features, greedy_one_to_one, hamming, pairs_within, spots
+from auxgps.core.features import Features, greedy_one_to_one, hamming_pairs, pairs_within, spots
 from auxgps.core.geometry import cross_matrix
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.stopwatch import null_stopwatch
@@ -548,7 +548,7 @@ class Localiser:
         fi, ci = pairs_within(features.uv_px, uv, radius_px)
         # The candidates' descriptor rows are gathered from the map once, then paired (a few in cache, not
         # thousands of scattered rows of a large map).
-        ok = hamming(features.descriptors[fi], self.map.descriptors[cand][ci]) <= self.cfg.positioning.max_hamming
+        ok = hamming_pairs(features.descriptors, fi, self.map.descriptors[cand], ci) <= self.cfg.positioning.max_hamming
         return fi[ok], cand[ci[ok]]
 
     def _consensus(self, corr: _Correspondences) -> tuple[np.ndarray, np.ndarray]:

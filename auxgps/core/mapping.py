@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from auxgps.core.camera import PinholeCamera
-from auxgps.core.features import Features, greedy_one_to_one, hamming, pairs_within, spots
+from auxgps.core.features import Features, greedy_one_to_one, hamming_pairs, pair_order, pairs_within, spots
 from auxgps.core.geometry import intersect_rays_with_horizontal_plane
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.retag import HeadingView
@@ -183,11 +183,13 @@ class Mapper:
         """
         cfg = self.cfg.mapping
         none = np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-        fi, ci = pairs_within(features.uv_px, uv_lm, cfg.match_radius_px)
+        fi, ci = pairs_within(features.uv_px, uv_lm, cfg.match_radius_px, ordered=False)
         if len(fi) == 0:
             return none
-        ham = hamming(features.descriptors[fi], self.map.descriptors[cand[ci]])
-        ok = ham <= cfg.max_hamming  # about one pair in ten on dense ground
+        ham = hamming_pairs(features.descriptors, fi, self.map.descriptors[cand], ci)
+        ok = np.flatnonzero(ham <= cfg.max_hamming)  # about one pair in ten on dense ground
+        # In order of feature, then landmark, which breaks the ties below (put in order only those kept: cheaper)
+        ok = ok[pair_order(fi[ok], ci[ok], len(features), len(cand))]
         fi, ci, ham = fi[ok], ci[ok], ham[ok]
         if len(fi) == 0:
             return none
@@ -236,8 +238,12 @@ class Mapper:
         hist = np.bincount(idx[:, 0] * w + idx[:, 1], minlength=h * w).reshape(h, w).astype(np.float32)
         approx = cv2.filter2D(hist, -1, _disk(r_bins), borderType=cv2.BORDER_CONSTANT)[idx[:, 0], idx[:, 1]]
         cand = np.arange(len(off)) if len(off) <= exact_votes else np.sort(np.argpartition(-approx, exact_votes - 1)[:exact_votes])
-        dn = off[cand, 0, None] - np.ascontiguousarray(off[:, 0])
-        de = off[cand, 1, None] - np.ascontiguousarray(off[:, 1])
+        # Only offsets inside the candidates' box widened by agree_px can be within agree_px of one of them
+        c = off[cand]
+        lo_c, hi_c = c.min(axis=0) - agree_px, c.max(axis=0) + agree_px
+        near = off[(off[:, 0] >= lo_c[0]) & (off[:, 0] <= hi_c[0]) & (off[:, 1] >= lo_c[1]) & (off[:, 1] <= hi_c[1])]
+        dn = c[:, 0, None] - near[:, 0]
+        de = c[:, 1, None] - near[:, 1]
         dn *= dn
         de *= de
         dn += de
