@@ -122,9 +122,9 @@ class MappingConfig:
     initial_height_sigma_m: Positive = 3.0  # a new landmark's height prior about the ground plane
     # A frame taken less than this after the last mapped one is not mapped (nor self-checked): views a thirtieth
     # of a second apart add little but noise their errors share, and min_seen counts frames, not viewpoints. At 30
-    # frames a second, mapping every frame made a worse map (docs/benchmark.md, "Following"). Off (0) by default
-    # with positioning.follow_for_s, whose note says why; config/pipeline/follow_30fps.yaml sets 0.08.
-    min_interval_s: NonNegative = 0.0
+    # frames a second, mapping every frame made a worse map (docs/benchmark.md, "Following"). At 10 frames a second
+    # or fewer it skips none. 0: every frame is mapped (config/pipeline/no_follow.yaml, for comparison).
+    min_interval_s: NonNegative = 0.08
 
 
 @dataclass(config=_STRICT, frozen=True)
@@ -160,11 +160,9 @@ class PositioningConfig:
     own_landmarks_take_over: Annotated[int, Field(ge=1)] = 60
     # A positioning frame taken less than this after the last full one (one detected and matched) follows that
     # fix's inliers into itself by optical flow instead (auxgps.core.tracking); 0: every frame is a full one.
-    # At 0.08 s, 30 frames a second follow two frames in three, 10 or fewer none. Off by default: with it (and
-    # mapping.min_interval_s) on, the GPS1 drag fault flight's GPS_INPUT was inside 3 sigma 0.970 in a clean-clone
-    # CI, under its 0.97: a followed fix shares its full frame's map errors, and the filter counts it as new.
-    # config/pipeline/follow_30fps.yaml turns both on (docs/benchmark.md, "Following").
-    follow_for_s: NonNegative = 0.0
+    # At 0.08 s, 30 frames a second follow two frames in three, 10 or fewer none (docs/benchmark.md, "Following").
+    # config/pipeline/no_follow.yaml turns it and mapping.min_interval_s off, for comparison.
+    follow_for_s: NonNegative = 0.08
     # The Lucas-Kanade window and pyramid levels above the image: each point starts where the prior puts its
     # landmark, a few pixels off, so a small window and two levels reach it (a 1280x720 frame's pyramid alone
     # costs 5 ms at 21 px and 3 levels).

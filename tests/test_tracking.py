@@ -106,7 +106,7 @@ def test_at_30_frames_a_second_positioning_follows_two_frames_in_three_and_mappi
     """The estimator follows a full frame's inliers into the frames of the next 0.08 s (positioning.follow_for_s)
     and maps at most a frame every 0.08 s (mapping.min_interval_s): at 30 frames a second two positioning frames
     in three are followed, as accurate as the full ones, and the survey maps about as many frames as at 10."""
-    pipeline = load_pipeline_config(REPO / "config" / "pipeline" / "follow_30fps.yaml")
+    pipeline = load_pipeline_config()
     world, sim = two_cubes_crossed()
     at30 = run_once(world, 12.0, 30.0, 11, pipeline, sim)
     at10 = run_once(world, 12.0, 10.0, 11, pipeline, sim, mapping_fps=10.0)
