@@ -141,6 +141,26 @@ def test_a_run_of_gps1_reports_the_filter_rejects_distrusts_gps1_strictly():
     assert not s.gps1_trusted
 
 
+def test_gps1_found_off_track_takes_what_the_filter_followed_from_the_latest_self_checks():
+    """The filter follows a drag partway before its gate rejects GPS1; the map's self-checks just before say how
+    far (the estimator loosens the filter by that, as when the self-checks find the drag themselves). Self-checks
+    older than drag_window_s say nothing of now."""
+    cov = np.eye(2) * 0.05**2
+    s = Supervisor()
+    s.gps1(good(0.0), None, None)
+    for k, d in enumerate([0.30, 0.35, 0.40]):  # within drag_m: not a drag by themselves
+        assert s.visual_check(30.0 + 0.1 * k, np.array([-d, -d]) / np.sqrt(2), cov) is None
+    assert s.drag_seen_ne_m is None
+    s.gps1_rejected(30.5, 0.6)
+    np.testing.assert_allclose(s.drag_seen_ne_m, -np.array([0.35, 0.35]) / np.sqrt(2))
+    old = Supervisor()
+    old.gps1(good(0.0), None, None)
+    for k in range(3):
+        old.visual_check(10.0 + 0.1 * k, np.array([0.4, 0.0]), cov)
+    old.gps1_rejected(10.2 + old.cfg.drag_window_s + 0.1, 0.6)
+    assert old.drag_seen_ne_m is None
+
+
 def test_status_lines_come_one_at_a_time_in_order_each_whole():
     s = Supervisor(SupervisorConfig(status_interval_s=1.0))
     s.gps1(good(0.0), None, None)

@@ -749,8 +749,9 @@ class Estimator:
         t = job.frame.t_s
         note = _joined(self._pending_note, work.note)
         self._pending_note = None
-        if self._undo_found_at_s is not None:
+        if self._undo_found_at_s is not None:  # GPS1 found off track: the map undone, the filter loosened as for a drag
             note = _joined(note, self._undo_unverified(self._undo_found_at_s))
+            self._loosen_by_drag(self._undo_found_at_s)
             self._undo_found_at_s = None
         common = dict(mapping=job.mapping, located=res, mapped=work.mapped, features=work.features, note=note)
         if job.mapping and work.mapped is not None:

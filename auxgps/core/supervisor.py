@@ -110,7 +110,10 @@ class Supervisor:
         self._h_acc_trusted: list[float] = []  # GPS1's reported accuracy while trusted, m (the latest h_acc_history)
         self.trusted_since_s: float | None = None  # when GPS1 last became trusted
         self.last_agreement_t_s: float | None = None  # the last self-check run whose mean was within drag_m / 2
-        self.drag_seen_ne_m: np.ndarray | None = None  # the mean self-check (the map's fix less the filter) that found GPS1 dragged, m
+        # The mean self-check (the map's fix less the filter) when GPS1 was found dragged, m: what the filter had
+        # followed of the drag (None: no run of self-checks within drag_window_s said)
+        self.drag_seen_ne_m: np.ndarray | None = None
+        self._last_run: tuple[float, np.ndarray] | None = None  # the latest run of self-checks: its time and mean, m
 
     def _degraded(self, sample: Gps1Sample) -> str | None:
         """Why GPS1's report is not good enough to trust (None: it is)."""
@@ -181,6 +184,9 @@ class Supervisor:
         to log (None when GPS1 was not trusted anyway)."""
         if not self.gps1_trusted:
             return None
+        # What the filter followed of it is what the map says now: the latest run of self-checks, if recent
+        recent = self._last_run is not None and abs(t_s - self._last_run[0]) <= self.cfg.drag_window_s
+        self.drag_seen_ne_m = self._last_run[1] if recent else None
         return self._distrust_as_dragged(t_s, f"GPS1 off track {distance_m:.1f} m: distrusted, no mapping (a run of its "
                                               "reports off the filter's track, rejected by its gate)")
 
@@ -212,6 +218,7 @@ class Supervisor:
             return None
         n = len(run)
         mean = sum(c[1] for c in run) / n
+        self._last_run = (t_s, mean)
         cov = sum(c[2] for c in run) / (n * n) + (shared_ne_m2 if shared_ne_m2 is not None else 0.0)
         m2 = float(mean @ np.linalg.solve(cov, mean))
         if float(np.linalg.norm(mean)) <= cfg.drag_m / 2:
