@@ -11,7 +11,6 @@ from auxgps.core.localise import Fix, Localiser, NoFix
 from auxgps.core.tracking import Followed, InlierFlow, spread_over
 from auxgps.evaluation.scenario import run_once
 from auxgps.sim.texture import gravel_texture
-from tests.conftest import REPO
 from tests.test_pipeline import synthetic_map, two_cubes_crossed
 
 

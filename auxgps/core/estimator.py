@@ -749,9 +749,8 @@ class Estimator:
         t = job.frame.t_s
         note = _joined(self._pending_note, work.note)
         self._pending_note = None
-        if self._undo_found_at_s is not None:  # GPS1 found off track: the map undone, the filter loosened as for a drag
-            note = _joined(note, self._undo_unverified(self._undo_found_at_s))
-            self._loosen_by_drag(self._undo_found_at_s)
+        if self._undo_found_at_s is not None:  # GPS1 found off track by the filter's gate
+            note = _joined(note, self._found_dragged(self._undo_found_at_s))
             self._undo_found_at_s = None
         common = dict(mapping=job.mapping, located=res, mapped=work.mapped, features=work.features, note=note)
         if job.mapping and work.mapped is not None:
@@ -781,8 +780,7 @@ class Estimator:
             shared = np.eye(2) * self.filter.fix_bias_sigma_m**2 + s**2 * cov_b
             drag = self.supervisor.visual_check(res.t_s, d_ne - s * b_ne, res.cov_ned_m2[:2, :2] + est.cov_p_m2[:2, :2], shared)
             if drag:
-                common["note"] = _joined(common["note"], drag, self._undo_unverified(res.t_s))
-                self._loosen_by_drag(res.t_s)
+                common["note"] = _joined(common["note"], drag, self._found_dragged(res.t_s))
             elif s > 0:
                 self.filter.learn_map_offset(res.t_s, res.p_ned_m[:2], res.cov_ned_m2[:2, :2], s)
             return FrameResult(t, "self-check", f"{d:.3f} m", self_check_m=d, **common)
@@ -895,6 +893,13 @@ class Estimator:
         p = float(np.clip(p_off_now, 0.0, 1.0))
         turn_var_rad2 = p * (sigma_rad**2 + (b_rad - taken_rad) ** 2) + (1.0 - p) * taken_rad**2
         return float(np.sqrt(turn_var_rad2) * max(alt_above_origin_m, 0.0) * self._footprint_rms_per_m)
+
+    def _found_dragged(self, t_s: float) -> str | None:
+        """GPS1 found dragged at ``t_s``, by the self-checks or by the filter's gate: the map undone and the filter
+        loosened by what it followed, alike either way. The line for the events log."""
+        line = self._undo_unverified(t_s)
+        self._loosen_by_drag(t_s)
+        return line
 
     def _loosen_by_drag(self, t_s: float) -> None:
         """GPS1 found dragged at ``t_s``: the filter followed it, so it is off by what the self-checks saw (in
