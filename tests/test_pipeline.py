@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from auxgps.config import PipelineConfig, parse_as
-from auxgps.core.camera import CameraPose
+from auxgps.core.camera import CameraPose, PinholeCamera
 from auxgps.core.features import Features, FeatureDetector
 from auxgps.core.geometry import R_BODY_CAM_DOWN, R_ned_body_from_euler, cross_matrix
 from auxgps.core.landmarks import LandmarkMap
@@ -621,6 +621,44 @@ def test_pairs_within_unordered_are_the_same_pairs_and_pair_order_orders_them(mo
     ref = np.lexsort((ju[keep], iu[keep]))
     np.testing.assert_array_equal(iu[keep][order], iu[keep][ref])
     np.testing.assert_array_equal(ju[keep][order], ju[keep][ref])
+
+
+def test_pairs_within_radii_gives_each_b_its_own_radius():
+    """Every pair with ``|a_i - b_j| <= radius_j``, bound included, and no other, whichever group of radii ``b_j``
+    is searched in (a radius on a group's edge, and one past the last)."""
+    from auxgps.core.features import pairs_within_radii
+
+    rng = np.random.default_rng(13)
+    a = rng.uniform(0, 200, (300, 2)).round()
+    b = rng.uniform(0, 200, (500, 2)).round()
+    radius = rng.choice([0.5, 3.0, 5.0, 12.0, 20.0, 24.0, 30.0, 48.0], len(b))
+    i, j = pairs_within_radii(a, b, radius)
+    ref = set(zip(*(x.tolist() for x in np.nonzero(np.linalg.norm(a[:, None] - b[None], axis=2) <= radius[None]))))
+    assert len(i) == len(ref) == len(set(zip(i.tolist(), j.tolist())))
+    assert set(zip(i.tolist(), j.tolist())) == ref
+    assert len(ref) > 1000  # pairs in every group
+    assert pairs_within_radii(a[:0], b, radius)[0].size == 0
+
+
+def test_mapper_pixel_sigma_is_the_landmark_covariance_carried_through_the_projection(pipeline):
+    """The largest one-sigma of a landmark's predicted pixel: the square root of the largest eigenvalue of
+    ``J C J^T`` (``J`` the projection's Jacobian, here by finite differences), from a tilted camera; a landmark loose
+    along the ray to the camera does not move in the image."""
+    camera = PinholeCamera.from_hfov(1280, 720, np.deg2rad(70.0))
+    mapper = Mapper(pipeline, camera, R_BODY_CAM_DOWN, LandmarkMap())
+    pose = CameraPose(np.array([3.0, -2.0, -40.0]), R_ned_body_from_euler(*np.deg2rad([4.0, -3.0, 30.0])) @ R_BODY_CAM_DOWN)
+    rng = np.random.default_rng(3)
+    L = np.column_stack([rng.uniform(-20, 20, (40, 2)), rng.uniform(-2, 2, 40)])
+    G = rng.normal(0, 0.5, (40, 3, 3))
+    cov = G @ G.transpose(0, 2, 1) + 0.01 * np.eye(3)
+    got = mapper._pixel_sigma_px(L, cov, pose)
+    for k in range(len(L)):
+        J = np.column_stack([(pose.project(camera, L[k] + h)[0][0] - pose.project(camera, L[k] - h)[0][0]) / 2e-4
+                             for h in np.eye(3) * 1e-4])
+        assert got[k] == pytest.approx(np.sqrt(np.linalg.eigvalsh(J @ cov[k] @ J.T)[-1]), rel=1e-4)
+    ray = (L[0] - pose.p_cam_in_ned_m) / np.linalg.norm(L[0] - pose.p_cam_in_ned_m)
+    along = 9.0 * np.outer(ray, ray) + 1e-6 * np.eye(3)  # 3 m along the ray
+    assert mapper._pixel_sigma_px(L[:1], along[None], pose)[0] < 0.05  # its largest sigma over its range: 60 px
 
 
 def test_hamming_pairs_is_hamming_of_the_gathered_rows():

@@ -127,6 +127,25 @@ class CameraPose:
         """(N, 2) pixels -> (N, 3) unit rays in NED."""
         return camera.pixels_to_rays_cam(uv_px) @ self.R_ned_cam.T
 
+    def box_in_view(self, camera: PinholeCamera, max_depth_m: float, margin_px: float = 0.0) -> tuple[tuple[float, float], tuple[float, float]] | None:
+        """North and east ranges (m) of a box holding every point at most ``max_depth_m`` below the camera that
+        projects into the image (widened by ``margin_px``); None when part of the image looks at or above the
+        horizon (no bound).
+
+        Through the image's border, 8 points a side (a distorted lens bends it): at that depth, the rays through
+        the border enclose those through the image, and a point less deep lies between the camera and that
+        section, so the box holds the section and the camera.
+        """
+        xs = np.linspace(-margin_px, camera.width_px - 1 + margin_px, 8)
+        ys = np.linspace(-margin_px, camera.height_px - 1 + margin_px, 8)
+        border = np.vstack([np.column_stack([xs, np.full(8, ys[0])]), np.column_stack([xs, np.full(8, ys[-1])]),
+                            np.column_stack([np.full(8, xs[0]), ys]), np.column_stack([np.full(8, xs[-1]), ys])])
+        rays = self.rays_ned(camera, border)
+        if np.any(rays[:, 2] <= 1e-6) or not max_depth_m > 0.0:
+            return None
+        ne = np.vstack([self.p_cam_in_ned_m[:2], self.p_cam_in_ned_m[:2] + rays[:, :2] * (max_depth_m / rays[:, 2])[:, None]])
+        return (float(ne[:, 0].min()), float(ne[:, 0].max())), (float(ne[:, 1].min()), float(ne[:, 1].max()))
+
 
 def camera_from_config(cfg) -> PinholeCamera:
     """Build a :class:`PinholeCamera` from a :class:`auxgps.config.CameraConfig`."""

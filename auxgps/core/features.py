@@ -226,6 +226,30 @@ def pairs_within(a_px: np.ndarray, b_px: np.ndarray, radius_px: float, ordered: 
     return i[order], j[order]
 
 
+def pairs_within_radii(a_px: np.ndarray, b_px: np.ndarray, radius_b_px: np.ndarray, edges_px=(12.0, 24.0)) -> tuple[np.ndarray, np.ndarray]:
+    """Every (i, j) with ``|a_i - b_j| <= radius_b_px[j]``, each ``b`` with its own radius, unordered.
+
+    The ``b`` are searched in groups of like radius (up to each of ``edges_px``, then the rest), each group with its
+    largest, and the pairs beyond their own radius dropped: when a few radii are wide, the rest are not searched as
+    widely too (the pairs found cost most of a search).
+    """
+    radius_b_px = np.asarray(radius_b_px, float)
+    if len(a_px) == 0 or len(b_px) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    a_tree = cKDTree(a_px, balanced_tree=False, compact_nodes=False)
+    group = np.searchsorted(np.asarray(edges_px, float), radius_b_px)
+    found_i, found_j = [], []
+    for g in np.unique(group):
+        sel = np.flatnonzero(group == g)
+        found = a_tree.sparse_distance_matrix(cKDTree(b_px[sel], balanced_tree=False, compact_nodes=False),
+                                              float(radius_b_px[sel].max()), output_type="ndarray")
+        i, j = found["i"].astype(np.int64), sel[found["j"]]
+        keep = found["v"] <= radius_b_px[j]
+        found_i.append(i[keep])
+        found_j.append(j[keep])
+    return np.concatenate(found_i), np.concatenate(found_j)
+
+
 def pair_order(i: np.ndarray, j: np.ndarray, n_a: int, n_b: int) -> np.ndarray:
     """The permutation that puts pairs ``(i[k], j[k])`` (``i < n_a``, ``j < n_b``, no pair twice) in order of i,
     then j: two stable sorts of 16-bit indices where they fit (NumPy sorts those by radix, in linear time), else

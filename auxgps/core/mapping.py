@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from auxgps.core.camera import PinholeCamera
-from auxgps.core.features import Features, greedy_one_to_one, hamming_pairs, pair_order, pairs_within, spots
+from auxgps.core.features import Features, greedy_one_to_one, hamming_pairs, pair_order, pairs_within, pairs_within_radii, spots
 from auxgps.core.geometry import intersect_rays_with_horizontal_plane
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.retag import HeadingView
@@ -107,10 +107,15 @@ class Mapper:
         # A keypoint found on a coarser pyramid level is located less precisely.
         sigma_px = self.cfg.noise.pixel_px * self.cfg.detector.scale_factor ** features.octave / features.scale
 
-        # Candidates: landmarks whose projection falls in the image.
-        reach = max(nav.alt_above_origin_m, 1.0) * self._footprint_tan + 5.0
+        # Candidates: landmarks whose projection falls in the image (near it), from the box the image sees down to
+        # the deepest landmark of the map; a camera that sees the horizon takes the square its footprint's reach
+        # spans, with some tilt.
         with self.stopwatch("matching"):
-            cand = self.map.ids_in_box((c[0] - reach, c[0] + reach), (c[1] - reach, c[1] + reach))
+            box = pose.box_in_view(self.camera, self.map.deepest_down_m() - c[2], cfg.edge_margin_px) if len(self.map) else None
+            if box is None:
+                reach = max(nav.alt_above_origin_m, 1.0) * self._footprint_tan + 5.0
+                box = (c[0] - reach, c[0] + reach), (c[1] - reach, c[1] + reach)
+            cand = self.map.ids_in_box(*box)
             cand = cand[self.map.source[cand] == 0]  # a prior map's landmarks are used to position, never refined
         matched_feat = matched_lm = np.zeros(0, int)
         if len(cand):
@@ -120,7 +125,7 @@ class Mapper:
             self.map.count_visible(cand[self.camera.in_image(uv_lm)], nav.t_s)
             if len(cand):
                 with self.stopwatch("matching"):
-                    matched_feat, matched_lm, chi2 = self._guided_match(features, cand, uv_lm, rays, c, sigma_px, sigma_att_rad)
+                    matched_feat, matched_lm, chi2 = self._guided_match(features, cand, uv_lm, rays, pose, sigma_px, sigma_att_rad)
 
         # What the views are geotagged with, for turning them again when the heading is better known.
         view = HeadingView(nav.heading.offset_rad, c.copy(), nav.heading.memory) if nav.heading is not None else None
@@ -172,41 +177,38 @@ class Mapper:
         """One-sigma offset of a ray at ``range_m`` across its direction: its direction's error there and GPS noise, m."""
         return np.hypot(range_m * sigma_angle_rad, self._sigma_pos_m)
 
-    def _guided_match(self, features, cand, uv_lm, rays, c, sigma_px, sigma_att_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    #: The frame's common shift is measured on at most this many established landmarks, spread over the candidates.
+    SHIFT_SAMPLE = 256
+
+    def _guided_match(self, features, cand, uv_lm, rays, pose, sigma_px, sigma_att_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One-to-one matches (feature indices, landmark ids, squared Mahalanobis innovations).
 
         GPS and attitude errors shift every landmark's predicted pixel alike, by a few pixels; corners of a
-        small cube are only a few more apart. So the shift common to the frame is measured first, from the
-        established landmarks, and each landmark is then paired only with a feature close to its shifted
-        prediction (within what its own uncertainty allows), with agreeing descriptors, and inside the
-        chi-square gate.
+        small cube are only a few more apart. So the shift common to the frame is measured first, on established
+        landmarks, and each landmark is then paired only with a feature close to its shifted prediction (within
+        3 sigma of its covariance carried through the projection, and the feature's pixel noise), with agreeing
+        descriptors, and inside the chi-square gate.
         """
         cfg = self.cfg.mapping
+        c = pose.p_cam_in_ned_m
         none = np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-        fi, ci = pairs_within(features.uv_px, uv_lm, cfg.match_radius_px, ordered=False)
-        if len(fi) == 0:
-            return none
+        shift = self._frame_shift(features, cand, uv_lm)
+        cov = self.map.covariance(cand)
+        L = self.map.p_ned_m[cand].astype(float)
+        sigma_lm_px = self._pixel_sigma_px(L, cov, pose)
+        reach_px = np.minimum(3.0 * np.hypot(2.0 * sigma_px.max(), sigma_lm_px), cfg.match_radius_px)
+        fi, ci = pairs_within_radii(features.uv_px, uv_lm + shift, reach_px)
         ham = hamming_pairs(features.descriptors, fi, self.map.descriptors[cand], ci)
-        ok = np.flatnonzero(ham <= cfg.max_hamming)  # about one pair in ten on dense ground
+        ok = np.flatnonzero(ham <= cfg.max_hamming)
         # In order of feature, then landmark, which breaks the ties below (put in order only those kept: cheaper)
         ok = ok[pair_order(fi[ok], ci[ok], len(features), len(cand))]
         fi, ci, ham = fi[ok], ci[ok], ham[ok]
         if len(fi) == 0:
             return none
-        offsets = features.uv_px[fi] - uv_lm[ci]  # (P, 2) px
-        lm = cand[ci]
-        shift = self._common_shift(offsets, self.map.n_seen[lm] >= 3)
-        # Each landmark's covariance and pixel uncertainty (its largest position sigma seen from this range), once
-        # per landmark: a frame has about three candidate pairs for each.
-        lm_u, of_u = np.unique(lm, return_inverse=True)
-        cov_u = self.map.covariance(lm_u)
-        L_u = self.map.p_ned_m[lm_u].astype(float)
-        range_u_m = np.linalg.norm(L_u - c, axis=1)
-        sigma_lm_px = (np.sqrt(np.linalg.eigvalsh(cov_u)[:, -1]) / range_u_m * self.camera.focal_px)[of_u]
-        range_m = range_u_m[of_u]
-        radius = np.minimum(3.0 * np.hypot(sigma_px[fi] * 2.0, sigma_lm_px), cfg.match_radius_px)
-        d_shifted = np.linalg.norm(offsets - shift, axis=1)
-        m2 = ray_mahalanobis2(L_u[of_u], cov_u[of_u], c, rays[fi], self._sigma_perp(range_m, self._sigma_angle(sigma_px[fi], sigma_att_rad)))
+        radius = np.minimum(3.0 * np.hypot(sigma_px[fi] * 2.0, sigma_lm_px[ci]), cfg.match_radius_px)
+        d_shifted = np.linalg.norm(features.uv_px[fi] - uv_lm[ci] - shift, axis=1)
+        range_m = np.linalg.norm(L[ci] - c, axis=1)
+        m2 = ray_mahalanobis2(L[ci], cov[ci], c, rays[fi], self._sigma_perp(range_m, self._sigma_angle(sigma_px[fi], sigma_att_rad)))
         ok = (d_shifted <= radius) & (m2 <= cfg.gate_chi2)
         fi, ci, ham, m2, d_shifted = fi[ok], ci[ok], ham[ok], m2[ok], d_shifted[ok]
         # Greedy one-to-one assignment, nearest first, then best descriptor.
@@ -215,6 +217,35 @@ class Mapper:
         if len(chosen) == 0:
             return none
         return fi[chosen], cand[ci[chosen]], m2[chosen]
+
+    def _frame_shift(self, features: Features, cand: np.ndarray, uv_lm: np.ndarray) -> np.ndarray:
+        """The pixel shift common to the frame (:meth:`_common_shift`), from the pairs of established landmarks (seen
+        three times or more) with agreeing descriptors within ``match_radius_px``: at most :attr:`SHIFT_SAMPLE` of
+        them, evenly spread over the candidates (a mode of a few thousand offsets is found as well from a sample,
+        and the pairs of all cost most of a frame's matching)."""
+        cfg = self.cfg.mapping
+        est = np.flatnonzero(self.map.n_seen[cand] >= 3)
+        if len(est) > self.SHIFT_SAMPLE:
+            est = est[np.linspace(0, len(est) - 1, self.SHIFT_SAMPLE).astype(int)]
+        fi, si = pairs_within(features.uv_px, uv_lm[est], cfg.match_radius_px)
+        ok = hamming_pairs(features.descriptors, fi, self.map.descriptors[cand[est]], si) <= cfg.max_hamming
+        offsets = features.uv_px[fi[ok]] - uv_lm[est[si[ok]]]
+        return self._common_shift(offsets, np.ones(len(offsets), bool))
+
+    def _pixel_sigma_px(self, L_ned_m: np.ndarray, cov_ned_m2: np.ndarray, pose) -> np.ndarray:
+        """(M,) the largest one-sigma of each landmark's predicted pixel, px: its covariance carried through the
+        projection (a landmark loose along the ray it was first seen on moves in the image only as far as the
+        camera has moved since; its largest sigma over its range would count all of it)."""
+        p = pose.ned_to_cam(L_ned_m)
+        C = pose.R_ned_cam.T @ cov_ned_m2 @ pose.R_ned_cam  # (M, 3, 3) in the camera frame
+        a, b = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
+        # J = (f / z) [[1, 0, -a], [0, 1, -b]]
+        s11 = C[:, 0, 0] - 2.0 * a * C[:, 0, 2] + a * a * C[:, 2, 2]
+        s22 = C[:, 1, 1] - 2.0 * b * C[:, 1, 2] + b * b * C[:, 2, 2]
+        s12 = C[:, 0, 1] - a * C[:, 1, 2] - b * C[:, 0, 2] + a * b * C[:, 2, 2]
+        half_sum, half_diff = 0.5 * (s11 + s22), 0.5 * (s11 - s22)
+        largest = half_sum + np.sqrt(half_diff * half_diff + s12 * s12)
+        return np.sqrt(np.maximum(largest, 0.0)) * self.camera.focal_px / p[:, 2]
 
     @staticmethod
     def _common_shift(offsets_px: np.ndarray, established: np.ndarray, agree_px: float = 2.0, exact_votes: int = 64) -> np.ndarray:
