@@ -661,6 +661,27 @@ def test_mapper_pixel_sigma_is_the_landmark_covariance_carried_through_the_proje
     assert mapper._pixel_sigma_px(L[:1], along[None], pose)[0] < 0.05  # its largest sigma over its range: 60 px
 
 
+@pytest.mark.parametrize("euler_deg", [(0.0, 0.0, 0.0), (4.0, -3.0, 30.0), (25.0, 10.0, -120.0)])
+def test_box_in_view_holds_every_point_the_image_sees_down_to_its_depth(euler_deg):
+    """Points through random pixels of the image (and its margin) at random depths down to the limit, from level and
+    tilted cameras, with a distorted lens: all inside the box; a camera that sees the horizon has none."""
+    cam = PinholeCamera.from_hfov(1280, 720, np.deg2rad(80.0))
+    camera = PinholeCamera(cam.width_px, cam.height_px, cam.K, np.array([0.1, -0.05, 0.0, 0.0, 0.0]))
+    pose = CameraPose(np.array([10.0, -5.0, -40.0]), R_ned_body_from_euler(*np.deg2rad(euler_deg)) @ R_BODY_CAM_DOWN)
+    rng = np.random.default_rng(8)
+    uv = np.column_stack([rng.uniform(-12, 1291, 5000), rng.uniform(-12, 731, 5000)])
+    uv[:4] = [[-12, -12], [1291, -12], [-12, 731], [1291, 731]]
+    rays = pose.rays_ned(camera, uv)
+    depth = rng.uniform(0.1, 45.0, len(uv))
+    depth[:4] = 45.0
+    p = pose.p_cam_in_ned_m + rays * (depth / rays[:, 2])[:, None]
+    (n0, n1), (e0, e1) = pose.box_in_view(camera, 45.0, 12.0)
+    assert np.all((p[:, 0] >= n0 - 1e-9) & (p[:, 0] <= n1 + 1e-9) & (p[:, 1] >= e0 - 1e-9) & (p[:, 1] <= e1 + 1e-9))
+    assert (n1 - n0) * (e1 - e0) < 1.3 * np.ptp(p[:, 0]) * np.ptp(p[:, 1])  # and not much more
+    sideways = CameraPose(np.zeros(3), R_ned_body_from_euler(np.deg2rad(60.0), 0.0, 0.0) @ R_BODY_CAM_DOWN)
+    assert sideways.box_in_view(camera, 45.0) is None
+
+
 def test_hamming_pairs_is_hamming_of_the_gathered_rows():
     """Word by word, including the largest distance (every bit differs: 256, past a byte), and by the byte table
     for descriptors of another length."""

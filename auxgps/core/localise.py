@@ -282,7 +282,7 @@ class Localiser:
             inside = np.linalg.norm(hyp - prior.p_ned_m[:2], axis=1) <= gate
             feat_i, lm_id, L, d, t, hyp = feat_i[inside], lm_id[inside], L[inside], d[inside], t[inside], hyp[inside]
         n_corr = len(feat_i)
-        if len(np.unique(feat_i)) < cfg.min_inliers:
+        if np.count_nonzero(np.bincount(feat_i, minlength=n_feat)) < cfg.min_inliers:  # features with a correspondence
             return NoFix(t_s, f"{n_corr} correspondences inside the search area", n_correspondences=n_corr, n_features=n_feat)
 
         corr = _Correspondences(feat_i, lm_id, L, d, hyp, self._agreement_radius_m(d, t, inlier_px))

@@ -146,7 +146,9 @@ class Mapper:
         # (initial_height_sigma_m) until views from elsewhere fix it. One per spot of the image (features within
         # positioning.same_point_px, a corner found on two pyramid levels), and none on a spot that fed a landmark:
         # a second landmark of one corner lets a frame that finds it twice count it twice.
-        new = np.setdiff1d(np.arange(n), matched_feat)
+        unmatched = np.ones(n, bool)
+        unmatched[matched_feat] = False
+        new = np.flatnonzero(unmatched)
         radius_px = self.cfg.positioning.same_point_px / features.scale
         if len(new) and radius_px > 0:
             spot = spots(cKDTree(features.uv_px, balanced_tree=False, compact_nodes=False), radius_px)
