@@ -136,12 +136,14 @@ class CameraPose:
         the border enclose those through the image, and a point less deep lies between the camera and that
         section, so the box holds the section and the camera.
         """
+        if not max_depth_m > 0.0:
+            return None
         xs = np.linspace(-margin_px, camera.width_px - 1 + margin_px, 8)
         ys = np.linspace(-margin_px, camera.height_px - 1 + margin_px, 8)
         border = np.vstack([np.column_stack([xs, np.full(8, ys[0])]), np.column_stack([xs, np.full(8, ys[-1])]),
                             np.column_stack([np.full(8, xs[0]), ys]), np.column_stack([np.full(8, xs[-1]), ys])])
         rays = self.rays_ned(camera, border)
-        if np.any(rays[:, 2] <= 1e-6) or not max_depth_m > 0.0:
+        if np.any(rays[:, 2] <= 1e-6):
             return None
         ne = np.vstack([self.p_cam_in_ned_m[:2], self.p_cam_in_ned_m[:2] + rays[:, :2] * (max_depth_m / rays[:, 2])[:, None]])
         return (float(ne[:, 0].min()), float(ne[:, 0].max())), (float(ne[:, 1].min()), float(ne[:, 1].max()))

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from auxgps.core.camera import PinholeCamera
+from auxgps.core.camera import CameraPose, PinholeCamera
 from auxgps.core.features import Features, greedy_one_to_one, hamming_pairs, pair_order, pairs_within, pairs_within_radii, spots
 from auxgps.core.geometry import intersect_rays_with_horizontal_plane
 from auxgps.core.landmarks import LandmarkMap
@@ -182,7 +182,8 @@ class Mapper:
     #: The frame's common shift is measured on at most this many established landmarks, spread over the candidates.
     SHIFT_SAMPLE = 256
 
-    def _guided_match(self, features, cand, uv_lm, rays, pose, sigma_px, sigma_att_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _guided_match(self, features: Features, cand: np.ndarray, uv_lm: np.ndarray, rays: np.ndarray, pose: CameraPose, sigma_px: np.ndarray,
+                      sigma_att_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One-to-one matches (feature indices, landmark ids, squared Mahalanobis innovations).
 
         GPS and attitude errors shift every landmark's predicted pixel alike, by a few pixels; corners of a
@@ -229,12 +230,13 @@ class Mapper:
         est = np.flatnonzero(self.map.n_seen[cand] >= 3)
         if len(est) > self.SHIFT_SAMPLE:
             est = est[np.linspace(0, len(est) - 1, self.SHIFT_SAMPLE).astype(int)]
-        fi, si = pairs_within(features.uv_px, uv_lm[est], cfg.match_radius_px)
-        ok = hamming_pairs(features.descriptors, fi, self.map.descriptors[cand[est]], si) <= cfg.max_hamming
+        fi, si = pairs_within(features.uv_px, uv_lm[est], cfg.match_radius_px, ordered=False)
+        ok = np.flatnonzero(hamming_pairs(features.descriptors, fi, self.map.descriptors[cand[est]], si) <= cfg.max_hamming)
+        ok = ok[pair_order(fi[ok], si[ok], len(features), len(est))]  # in order of feature, then landmark: the ties
         offsets = features.uv_px[fi[ok]] - uv_lm[est[si[ok]]]
         return self._common_shift(offsets, np.ones(len(offsets), bool))
 
-    def _pixel_sigma_px(self, L_ned_m: np.ndarray, cov_ned_m2: np.ndarray, pose) -> np.ndarray:
+    def _pixel_sigma_px(self, L_ned_m: np.ndarray, cov_ned_m2: np.ndarray, pose: CameraPose) -> np.ndarray:
         """(M,) the largest one-sigma of each landmark's predicted pixel, px: its covariance carried through the
         projection (a landmark loose along the ray it was first seen on moves in the image only as far as the
         camera has moved since; its largest sigma over its range would count all of it)."""
