@@ -733,22 +733,22 @@ def test_greedy_one_to_one_in_rounds_keeps_the_pairs_the_loop_keeps(seed):
 def test_common_shift_is_the_mean_of_the_densest_cluster_of_offsets():
     """A frame's candidate offsets: a tight cluster at the GPS and attitude shift, a looser second cluster (a
     repeated pattern) and uniform clutter out to the match radius. The shift is the first cluster's mean; too few
-    agreeing offsets give none; offsets of landmarks not yet established do not vote."""
+    agreeing offsets give none; offsets left out (those of landmarks not yet established) do not vote."""
     rng = np.random.default_rng(3)
     true_shift = np.array([7.3, -4.1])
     cluster = true_shift + rng.normal(0, 0.5, (300, 2))
     decoy = np.array([-20.0, 15.0]) + rng.normal(0, 1.5, (200, 2))
     clutter = rng.uniform(-48, 48, (1500, 2))
     off = np.vstack([cluster, decoy, clutter])
-    shift = Mapper._common_shift(off, np.ones(len(off), bool))
+    shift = Mapper._common_shift(off)
     near = np.linalg.norm(off - true_shift, axis=1) <= 2.0
     assert np.linalg.norm(shift - true_shift) < 0.15
     assert np.linalg.norm(shift - off[near].mean(axis=0)) < 0.15
     # The decoy alone counts when the cluster's landmarks are new ones.
     established = np.ones(len(off), bool)
     established[:300] = False
-    assert np.linalg.norm(Mapper._common_shift(off, established) - np.array([-20.0, 15.0])) < 0.5
-    np.testing.assert_array_equal(Mapper._common_shift(rng.uniform(-48, 48, (2, 2)), np.ones(2, bool)), np.zeros(2))
+    assert np.linalg.norm(Mapper._common_shift(off[established]) - np.array([-20.0, 15.0])) < 0.5
+    np.testing.assert_array_equal(Mapper._common_shift(rng.uniform(-48, 48, (2, 2))), np.zeros(2))
     # The histogram only picks whom to count exactly: the offset that counting every offset's neighbours finds,
     # or in a broad cluster of near-equal counts one whose shift is a fraction of a pixel from it.
     same = 0
@@ -758,12 +758,12 @@ def test_common_shift_is_the_mean_of_the_densest_cluster_of_offsets():
                          r.uniform(-48, 48, (int(r.integers(3, 1500)), 2))])
         votes = np.count_nonzero(np.linalg.norm(off[:, None] - off[None], axis=2) <= 2.0, axis=1)
         ref = off[np.linalg.norm(off - off[np.argmax(votes)], axis=1) <= 2.0].mean(axis=0)
-        got = Mapper._common_shift(off, np.ones(len(off), bool))
+        got = Mapper._common_shift(off)
         same += np.array_equal(got, ref)
         assert np.linalg.norm(got - ref) < 0.5
     assert same >= 36
     far_apart = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [-10.0, -10.0]])
-    np.testing.assert_array_equal(Mapper._common_shift(far_apart, np.ones(4, bool)), np.zeros(2))
+    np.testing.assert_array_equal(Mapper._common_shift(far_apart), np.zeros(2))
 
 
 def test_ray_mahalanobis2_is_the_distance_across_the_ray_in_any_basis_of_that_plane():

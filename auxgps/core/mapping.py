@@ -234,7 +234,7 @@ class Mapper:
         ok = np.flatnonzero(hamming_pairs(features.descriptors, fi, self.map.descriptors[cand[est]], si) <= cfg.max_hamming)
         ok = ok[pair_order(fi[ok], si[ok], len(features), len(est))]  # in order of feature, then landmark: the ties
         offsets = features.uv_px[fi[ok]] - uv_lm[est[si[ok]]]
-        return self._common_shift(offsets, np.ones(len(offsets), bool))
+        return self._common_shift(offsets)
 
     def _pixel_sigma_px(self, L_ned_m: np.ndarray, cov_ned_m2: np.ndarray, pose: CameraPose) -> np.ndarray:
         """(M,) the largest one-sigma of each landmark's predicted pixel, px: its covariance carried through the
@@ -252,8 +252,8 @@ class Mapper:
         return np.sqrt(np.maximum(largest, 0.0)) * self.camera.focal_px / p[:, 2]
 
     @staticmethod
-    def _common_shift(offsets_px: np.ndarray, established: np.ndarray, agree_px: float = 2.0, exact_votes: int = 64) -> np.ndarray:
-        """The pixel shift most established candidate pairs agree on (the mean of the offsets within ``agree_px``
+    def _common_shift(offsets_px: np.ndarray, agree_px: float = 2.0, exact_votes: int = 64) -> np.ndarray:
+        """The pixel shift most candidate pairs agree on (the mean of the offsets within ``agree_px``
         of the offset with the most such neighbours, itself included), or zero when fewer than 3 agree.
 
         Counting every offset's neighbours costs the cluster's size squared, and most of a frame's pairs are in
@@ -263,7 +263,7 @@ class Mapper:
         the histogram's rounding ranks it below ``exact_votes`` others, which takes a broad cluster of many
         near-equal counts, whose shifts differ by a fraction of a pixel.
         """
-        off = offsets_px[established]
+        off = np.asarray(offsets_px, float)
         if len(off) < 3:
             return np.zeros(2)
         bin_px, r_bins = agree_px / 4.0, 4
