@@ -235,7 +235,7 @@ def _bench(args) -> int:
         os.execvpe(sys.executable, [sys.executable, "-m", "auxgps.cli", *args.argv], env)
     import time
 
-    from auxgps.evaluation.bench import BenchConfig, bench_report, machine_info, run_bench, tiny_sim_config
+    from auxgps.evaluation.bench import BenchConfig, bench_report, machine_info, reference_ms, run_bench, tiny_sim_config
     from auxgps.sim.flight import load_sim_config
 
     sim = load_sim_config(args.sim_config)
@@ -259,7 +259,7 @@ def _bench(args) -> int:
         import cv2
 
         cv2.setNumThreads(1)
-        figures = {"machine": machine_info()}
+        figures = {"machine": dict(machine_info(), reference_ms=reference_ms())}
     else:
         figures = run_bench(pipeline, sim, cfg, tuple(m for m in methods if m is not None), progress)
         print(bench_report(figures))

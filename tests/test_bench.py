@@ -36,6 +36,10 @@ def test_tiny_bench_writes_the_required_json(tmp_path):
     assert fig["positioning"]["fixes"]["rms_m"] < rms_limit_m
     assert fig["machine"]["opencv_threads"] == 1
     assert fig["machine"]["thread_env"]["OPENBLAS_NUM_THREADS"] == "1"  # the bench started itself again with it
+    # The fixed work that sets this machine's figures beside another's, and the CPU the host took meanwhile.
+    assert fig["machine"]["reference_ms"]["opencv"] > 0 and fig["machine"]["reference_ms"]["python"] > 0
+    steal = fig["machine"]["cpu_steal_s"], fig["machine_end"]["cpu_steal_s"]
+    assert steal == (None, None) or steal[1] >= steal[0] >= 0
     assert "median" in fig["latency_ms"]
 
 

@@ -41,11 +41,11 @@ from typing import Callable, Protocol
 import cv2
 import numpy as np
 
-from auxgps.config import PipelineConfig
-from auxgps.config import parse_as
+from auxgps.config import PipelineConfig, parse_as
 from auxgps.core.camera import CameraPose, camera_from_config
 from auxgps.core.estimator import Estimator, EstimatorOptions, FrameResult
 from auxgps.core.events import Frame
+from auxgps.core.features import detect, greedy_one_to_one
 from auxgps.core.geometry import R_body_cam_from_mount
 from auxgps.core.landmarks import LandmarkMap
 from auxgps.core.localise import Fix
@@ -128,7 +128,46 @@ def machine_info() -> dict:
         "python": platform.python_version(),
         "numpy": np.__version__,
         "opencv": cv2.__version__,
+        "cpu_steal_s": cpu_steal_s(),
     }
+
+
+def cpu_steal_s() -> float | None:
+    """CPU time the hypervisor has taken from this virtual machine since it booted (the steal column of the ``cpu``
+    line of /proc/stat), s; None where there is none to read. What it grows by over a run is time the host took."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def reference_ms(repeats: int = 11) -> dict[str, float]:
+    """Thread CPU time of two fixed pieces of work, the median of ``repeats``, ms, so that figures taken on two
+    machines can be set side by side (a machine a third faster here runs the pipeline about a third faster):
+
+    - ``opencv``: the default detector's ORB (600 features, two levels, described at one angle) on a seeded
+      1280x720 gravel frame, as a mapping frame is detected;
+    - ``python``: a greedy one-to-one over 3000 seeded pairs, taken pair by pair as the mapper does, and a sort of
+      20 000 seeded floats: the interpreter's and NumPy's share of a frame.
+    """
+    cfg = PipelineConfig().detector
+    orb = Estimator(PipelineConfig()).detector.orb  # the flying detector's ORB at its lowest FAST threshold
+    grey = cv2.cvtColor(gravel_texture(1280, seed=1)[:720], cv2.COLOR_BGR2GRAY)
+    rng = np.random.default_rng(1)
+    a, b, x = rng.integers(0, 600, 3000), rng.integers(0, 1500, 3000), rng.random(20_000)
+
+    def median_ms(work) -> float:
+        times = []
+        for _ in range(repeats):
+            t0 = time.thread_time()
+            work()
+            times.append(time.thread_time() - t0)
+        return round(float(np.median(times)) * 1e3, 3)
+
+    return {"opencv": median_ms(lambda: detect([orb], grey, cfg.min_harris, 0.0)),
+            "python": median_ms(lambda: (greedy_one_to_one(a, b), np.sort(x)))}
 
 
 def bench_report(fig: dict) -> str:
@@ -144,7 +183,8 @@ def bench_report(fig: dict) -> str:
     bc = fig["config"]["bench"]
     lines = [
         f"world: {bc.get('world') or 'gravel and four 0.5 m cubes'}, at {bc['alt_m']:g} m, frames at 1280x720 on one thread",
-        f"machine: {fig['machine']['cpu']}, load average at start {fig['machine']['load_average']}, at end {fig['machine_end']['load_average']}",
+        f"machine: {fig['machine']['cpu']}, load average at start {fig['machine']['load_average']}, at end {fig['machine_end']['load_average']}"
+        + _host_note(fig),
         f"positioning frames ({pos['frames']}, map of {pos['map_landmarks']} landmarks, {pos['features_per_frame']:.0f} features/frame): "
         f"median {ms(pos['median_ms'])} ms, p99 {ms(pos['p99_ms'])} ms, min {ms(pos['min_ms'])}, max {ms(pos['max_ms'])} "
         f"(CPU median {ms(pos['cpu_ms']['median'])} ms)",
@@ -169,6 +209,16 @@ def bench_report(fig: dict) -> str:
             f"baseline / ours: time {r['time_baseline_over_ours'] or 0:.2f}, RMS {r['rms_baseline_over_ours'] or 0:.2f}"
         )
     return "\n".join(lines)
+
+
+def _host_note(fig: dict) -> str:
+    """The machine's reference work and the CPU the host took during the run, for the report's machine line."""
+    start, end = fig["machine"], fig.get("machine_end", {})
+    ref = start.get("reference_ms")
+    note = f"; reference work: OpenCV {ref['opencv']:.1f} ms, Python {ref['python']:.1f} ms" if ref else ""
+    if start.get("cpu_steal_s") is not None and end.get("cpu_steal_s") is not None:
+        note += f"; the host took {end['cpu_steal_s'] - start['cpu_steal_s']:.1f} s of CPU during the run"
+    return note
 
 
 def bench_world(sim: SimConfig, cfg: BenchConfig) -> World:
@@ -486,7 +536,8 @@ def _replay_summary(rec: _Replay, landmarks: LandmarkMap) -> dict:
 def run_bench(pipeline: PipelineConfig, sim: SimConfig, cfg: BenchConfig, methods: tuple = (), progress: Callable | None = None) -> dict:
     """Fly, render and time everything; return the benchmark's figures (see the README's table of its JSON)."""
     cv2.setNumThreads(1)
-    machine = machine_info()
+    reference = reference_ms()
+    machine = dict(machine_info(), reference_ms=reference)
     say = progress or (lambda *a, **k: None)
     seq = np.random.SeedSequence(cfg.seed)
     seq_map, seq_pos, seq_pad = seq.spawn(3)
