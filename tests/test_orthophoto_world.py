@@ -17,8 +17,10 @@ from rasterio.crs import CRS
 from rasterio.transform import from_origin
 
 from auxgps.core.camera import CameraPose, PinholeCamera
+from auxgps.core.frame_check import FrameCheck
 from auxgps.core.geometry import R_BODY_CAM_DOWN, LocalFrame, R_ned_body_from_euler
 from auxgps.errors import ConfigError
+from auxgps.sim.geoground import OFF_RASTER_BGR
 from auxgps.sim.render import Renderer
 from auxgps.sim.world import load_world
 
@@ -146,6 +148,29 @@ def test_a_pixel_shows_the_pattern_at_its_true_point(tmp_path, rasters, cam, crs
         assert err.mean() <= atol_grey_mean and np.percentile(err, 99) <= atol_grey, (p, err.mean(), np.percentile(err, 99))
         # flat ground: the truth is on the plane down = 0
         assert np.allclose(frame.points_ned()[..., 2][_interior(frame)], 0.0, atol=1e-4)
+
+
+def test_ground_off_the_orthophoto_and_under_its_mask_is_featureless_grey(tmp_path, cam):
+    """A camera sees ground beyond a survey, not a covered lens: off the raster and under its no-data mask the
+    ground renders as OFF_RASTER_BGR (one flat colour, nothing to detect), the rest as the orthophoto, and the
+    frame check does not call the frame black."""
+    path = write_ortho(tmp_path / "masked.tif", UTM, overviews=())
+    with rasterio.open(path, "r+") as ds:
+        mask = np.full((ds.height, ds.width), 255, np.uint8)
+        mask[: ds.height // 2] = 0  # the northern half: no data
+        ds.write_mask(mask)
+    frame = Renderer(load_world(write_world(tmp_path, {"orthophoto": str(path)})), cam).render(_pose((0.0, 0.0, -20.0), (0.0, 0.0, 0.0)))
+    p = frame.points_ned()
+    n, e = p[..., 0], p[..., 1]
+    on_raster = (np.abs(n) < 11.5) & (np.abs(e) < 11.5)
+    masked = on_raster & (n > 0.5)
+    off = (np.abs(e) > 12.5) | (np.abs(n) > 12.5)
+    shown = on_raster & (n < -0.5)
+    assert masked.sum() > 1000 and off.sum() > 1000 and shown.sum() > 1000
+    assert np.all(frame.image_bgr[masked | off] == OFF_RASTER_BGR)
+    err = np.abs(frame.image_bgr[shown].astype(float) - pattern_bgr(n[shown], e[shown]))
+    assert err.mean() <= atol_grey_mean and np.percentile(err, 99) <= atol_grey
+    assert "black" not in (FrameCheck().check(0.0, frame.image_bgr, None) or "")
 
 
 def test_a_raster_pixel_is_seen_where_geometry_puts_it(tmp_path, cam):

@@ -53,10 +53,14 @@ class GeoRaster:
         metres, read as float32 with no-data as NaN)
     block_px : side of the cached blocks, level pixels
     cache_blocks : how many blocks the cache holds (least recently used dropped first)
+    fill_bgr : an orthophoto's pixels under its no-data mask (its mask band, alpha or nodata value) read as this
+        colour; None: as the file holds them (often black)
     """
 
-    def __init__(self, path: Path | str, what: str, kind: str, block_px: int = 256, cache_blocks: int = 192) -> None:
+    def __init__(self, path: Path | str, what: str, kind: str, block_px: int = 256, cache_blocks: int = 192,
+                 fill_bgr: tuple[int, int, int] | None = None) -> None:
         self.path = Path(path)
+        self.fill_bgr = fill_bgr
         self.what = what
         self.kind = kind
         self.block_px = int(block_px)
@@ -162,6 +166,8 @@ class GeoRaster:
         ds = self._dataset(level)
         if self.kind == "orthophoto":
             block = np.ascontiguousarray(np.moveaxis(ds.read(self.bands, window=win), 0, -1))
+            if self.fill_bgr is not None:
+                block[ds.read_masks(1, window=win) == 0] = self.fill_bgr
         else:
             data = ds.read(1, window=win, masked=True)
             block = np.ma.filled(data.astype(np.float32), np.nan)

@@ -31,8 +31,10 @@ MAX_GRID_PX = 2048
 #: Steps of the ray march at most, and refinement iterations after it.
 MAX_MARCH_STEPS = 256
 REFINE_ITERATIONS = 6
-#: Colour of the ground off the orthophoto (BGR).
-OFF_RASTER_BGR = (0, 0, 0)
+#: Colour of the ground off the orthophoto and under its no-data mask (BGR): featureless mid grey. A camera sees
+#: ground beyond a survey, not a covered lens: black there made the frame check refuse frames half on the world
+#: (over Seneca, the far end of the out-and-back) as "lens covered", which a flight would have located from.
+OFF_RASTER_BGR = (96, 96, 96)
 
 
 def _cell_m(raster: GeoRaster, frame) -> float:

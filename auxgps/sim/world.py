@@ -45,6 +45,7 @@ from auxgps.config import _STRICT, parse_as, read_yaml
 from auxgps.core.geometry import LocalFrame
 from auxgps.errors import ConfigError
 from auxgps.io.georaster import GeoRaster
+from auxgps.sim.geoground import OFF_RASTER_BGR
 
 COLOR_NAMES_BGR: dict[str, tuple[int, int, int]] = {
     "black": (20, 20, 20),
@@ -244,7 +245,8 @@ def _relative(path_text: str, base_dir: Path | None) -> Path:
 
 def _georaster(key: str, path_text: str, kind: str, frame: LocalFrame, source: str, base_dir: Path | None) -> GeoRaster:
     """Open ``ground.<key>`` and check that the world origin lies on it."""
-    raster = GeoRaster(_relative(path_text, base_dir), f"{source}: ground.{key}", kind)
+    raster = GeoRaster(_relative(path_text, base_dir), f"{source}: ground.{key}", kind,
+                       fill_bgr=OFF_RASTER_BGR if kind == "orthophoto" else None)
     x, y, _ = raster.crs_from_ned(frame, np.zeros(3))
     if not np.all(np.isfinite([x, y])) or not raster.contains(float(x), float(y)):
         b = raster.bounds
