@@ -145,15 +145,15 @@ def cpu_steal_s() -> float | None:
 
 def reference_ms(repeats: int = 11) -> dict[str, float]:
     """Thread CPU time of two fixed pieces of work, the median of ``repeats``, ms, so that figures taken on two
-    machines can be set side by side (a machine a third faster here runs the pipeline about a third faster):
+    machines can be set side by side:
 
     - ``opencv``: the default detector's ORB (600 features, two levels, described at one angle) on a seeded
       1280x720 gravel frame, as a mapping frame is detected;
     - ``python``: a greedy one-to-one over 3000 seeded pairs, taken pair by pair as the mapper does, and a sort of
       20 000 seeded floats: the interpreter's and NumPy's share of a frame.
     """
-    cfg = PipelineConfig().detector
-    orb = Estimator(PipelineConfig()).detector.orb  # the flying detector's ORB at its lowest FAST threshold
+    pipeline = PipelineConfig()
+    orb = Estimator(pipeline).detector.orb  # the flying detector's ORB at its lowest FAST threshold
     grey = cv2.cvtColor(gravel_texture(1280, seed=1)[:720], cv2.COLOR_BGR2GRAY)
     rng = np.random.default_rng(1)
     a, b, x = rng.integers(0, 600, 3000), rng.integers(0, 1500, 3000), rng.random(20_000)
@@ -166,7 +166,7 @@ def reference_ms(repeats: int = 11) -> dict[str, float]:
             times.append(time.thread_time() - t0)
         return round(float(np.median(times)) * 1e3, 3)
 
-    return {"opencv": median_ms(lambda: detect([orb], grey, cfg.min_harris, 0.0)),
+    return {"opencv": median_ms(lambda: detect([orb], grey, pipeline.detector.min_harris, 0.0)),
             "python": median_ms(lambda: (greedy_one_to_one(a, b), np.sort(x)))}
 
 
@@ -536,8 +536,7 @@ def _replay_summary(rec: _Replay, landmarks: LandmarkMap) -> dict:
 def run_bench(pipeline: PipelineConfig, sim: SimConfig, cfg: BenchConfig, methods: tuple = (), progress: Callable | None = None) -> dict:
     """Fly, render and time everything; return the benchmark's figures (see the README's table of its JSON)."""
     cv2.setNumThreads(1)
-    reference = reference_ms()
-    machine = dict(machine_info(), reference_ms=reference)
+    machine = dict(machine_info(), reference_ms=reference_ms())
     say = progress or (lambda *a, **k: None)
     seq = np.random.SeedSequence(cfg.seed)
     seq_map, seq_pos, seq_pad = seq.spawn(3)
