@@ -14,7 +14,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from auxgps.config import PipelineConfig, load_pipeline_config
+from auxgps.config import load_pipeline_config
 from auxgps.core import localise
 from auxgps.evaluation import scenario as S
 from landmark_bias import mission_arguments, run_mission  # tools/, beside this script
@@ -27,7 +27,7 @@ def main() -> None:
     mission_arguments(ap)
     ap.add_argument("--bad-m", type=float, default=0.5, help="fixes off by more than this are shown apart (m)")
     a = ap.parse_args()
-    cfg = load_pipeline_config(a.config) if a.config else PipelineConfig()
+    cfg = load_pipeline_config(a.config)  # the built-in defaults without --config
 
     poses, fixes, truth = {}, [], {}
     on_frame, choose, locate = S._MapTruth.on_frame, localise.Localiser._choose, localise.Localiser.locate

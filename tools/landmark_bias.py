@@ -47,7 +47,7 @@ def main() -> None:
     mission_arguments(ap)
     ap.add_argument("--radius-m", type=float, default=25.0)
     a = ap.parse_args()
-    cfg = load_pipeline_config(a.config) if a.config else PipelineConfig()
+    cfg = load_pipeline_config(a.config)  # the built-in defaults without --config
     kept = {}
     errors = S._MapTruth.errors
 
