@@ -195,7 +195,8 @@ class FusionConfig:
     fix_bias_per_height: NonNegative = 0.006
     gate_chi2: Positive = 9.21  # 99% for the 2 degrees of freedom of a horizontal fix
     # A frame found ambiguous (two readings some distance apart) casts doubt on the fixes of the ground around it
-    # for this long: theirs is widened by that distance (the ground that looks alike is still in view).
+    # for this long, and for as long as the camera stays within half its footprint's shorter side of where it was
+    # (a descent at home): theirs is widened by that distance (the ground that looks alike is still in view).
     ambiguity_memory_s: NonNegative = 2.0
     # A visual fix whose sigma is over this many times the filter's own sigma of it (both RMS per axis, the fix's
     # widened as above) is not fused: it would take under 1 / (1 + ratio^2) off the filter's variance (a tenth at

@@ -330,8 +330,9 @@ def test_a_lost_filters_fixes_are_checked_against_its_dead_reckoning_which_follo
 
 def test_an_ambiguous_frame_widens_the_fixes_of_the_frames_after_it():
     """A frame whose two readings lay 0.6 m apart casts doubt on the next fixes of the same ground: a fix 0.3 m off
-    moves the filter less right after it than it does without one, and the doubt lapses after
-    ``fusion.ambiguity_memory_s``."""
+    moves the filter less right after it than it does without one. The doubt lapses after
+    ``fusion.ambiguity_memory_s`` once the camera has moved off that ground, not while it hovers over it (a
+    descent at home: the ground that looked alike is still what it sees)."""
     from auxgps.core.estimator import FrameJob, FrameWork
     from auxgps.core.events import Gps1, Position
     from auxgps.core.features import Features
@@ -340,24 +341,32 @@ def test_an_ambiguous_frame_widens_the_fixes_of_the_frames_after_it():
 
     frame = LocalFrame(47.0, 8.0, 400.0)
 
-    def moved_by_fix(ambiguous_at_s):
+    def moved_by_fix(ambiguous_at_s, fix_at_s, north_at_fix_m):
+        """How far north a fix 0.3 m north of GPS1's last reading moves the filter, GPS1 having read 0 m north at
+        0.1 s and ``north_at_fix_m`` twice just before the fix."""
         est = Estimator(PipelineConfig(), frame=frame)
         est.feed(Position(0.0, np.nan, np.nan, np.nan, 10.0))
-        lat, lon, alt = frame.to_geodetic(np.array([0.0, 0.0, -10.0]))
-        est.feed(Gps1(0.1, 3, 12, float(lat), float(lon), float(alt), 0.1))
+        for t, north in ((0.1, 0.0), (fix_at_s - 0.2, north_at_fix_m), (fix_at_s - 0.1, north_at_fix_m)):
+            lat, lon, alt = frame.to_geodetic(np.array([north, 0.0, -10.0]))
+            est.feed(Gps1(t, 3, 12, float(lat), float(lon), float(alt), 0.1))
+            if ambiguous_at_s is not None and t == 0.1:
+                none = Features(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, int))
+                job = FrameJob(Frame(ambiguous_at_s, np.zeros((2, 2, 3), np.uint8)), np.eye(3), 10.0, None, False, None)
+                est.finish_frame(FrameWork(job, none, None, NoFix(ambiguous_at_s, "ambiguous: a reading 0.60 m away", rivals_apart_m=0.6)))
+        before = float(est.filter.estimate_at(fix_at_s).p_ned_m[0])
+        fix = Fix(fix_at_s, np.array([north_at_fix_m + 0.3, 0.0, -10.0]), np.eye(3) * 0.05**2, 20, 40, 100)
         none = Features(np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, int))
-        job = lambda t: FrameJob(Frame(t, np.zeros((2, 2, 3), np.uint8)), np.eye(3), 10.0, None, False, None)  # noqa: E731
-        if ambiguous_at_s is not None:
-            amb = NoFix(ambiguous_at_s, "ambiguous: a reading 0.60 m away", rivals_apart_m=0.6)
-            est.finish_frame(FrameWork(job(ambiguous_at_s), none, None, amb))
-        fix = Fix(0.15, np.array([0.3, 0.0, -10.0]), np.eye(3) * 0.05**2, 20, 40, 100)
-        est.finish_frame(FrameWork(job(0.15), none, None, fix))
-        return float(est.filter.estimate_at(0.15).p_ned_m[0])
+        job = FrameJob(Frame(fix_at_s, np.zeros((2, 2, 3), np.uint8)), np.eye(3), 10.0, None, False, None)
+        est.finish_frame(FrameWork(job, none, None, fix))
+        return float(est.filter.estimate_at(fix_at_s).p_ned_m[0]) - before
 
-    plain, doubted, lapsed = moved_by_fix(None), moved_by_fix(0.12), moved_by_fix(0.15 - 2.5)
+    plain, doubted = moved_by_fix(None, 0.4, 0.0), moved_by_fix(0.12, 0.4, 0.0)
     assert plain > 0.05  # the fix moves the filter
-    assert doubted < 0.2 * plain  # right after an ambiguous frame, far less
-    assert lapsed == plain  # 2.5 s later, the doubt has lapsed (2 s)
+    assert doubted < 0.3 * plain  # right after an ambiguous frame, far less
+    hover_plain, hovering = moved_by_fix(None, 3.0, 0.0), moved_by_fix(0.12, 3.0, 0.0)
+    assert hovering < 0.3 * hover_plain  # 2.9 s later (memory 2 s), still over that ground: still in doubt
+    left_plain, left = moved_by_fix(None, 3.0, 8.0), moved_by_fix(0.12, 3.0, 8.0)
+    assert abs(left_plain) > 0.05 and left == pytest.approx(left_plain)  # 8 m on, off that ground: the doubt has lapsed
 
 
 def test_featureless_ground_is_said_once_it_has_lasted_a_second():

@@ -259,6 +259,7 @@ def refine_by_jacobians(loc, p0, corr, inl, alt_m):
     noise, f, d, L = loc.cfg.noise, loc.camera.focal_px, corr.d, corr.L
     P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
     lm_var = np.einsum("kij,kjl,kli->k", P, loc.map.covariance(corr.lm_id), P) / 2.0  # across the ray, per axis
+    height_mse = loc.map.covariance(corr.lm_id)[:, 2, 2] + loc.map.triangulation_bias_m(corr.lm_id)[:, 2] ** 2
     dx = cross_matrix(d)
     prior_info = np.diag([0.0, 0.0, 1.0 / noise.altitude_m**2] + [1.0 / np.deg2rad(noise.attitude_deg) ** 2] * 2
                          + [1.0 / np.deg2rad(noise.heading_deg) ** 2])
@@ -277,8 +278,43 @@ def refine_by_jacobians(loc, p0, corr, inl, alt_m):
         err_px = np.linalg.norm(resid, axis=1) / np.maximum(t, 1e-6) * f
         chi2 = float(np.sum(w[inl] * np.sum(resid[inl] ** 2, axis=1)))
         cov = np.linalg.inv(A)[:3, :3] * max(1.0, chi2 / max(2 * int(inl.sum()) - 3, 1))
+        # every landmark lowered by 1 m together: how far that moves the solution, times their mean squared height error
+        g = np.linalg.solve(A, -np.einsum("k,kji,kj->i", w[inl], J[inl], P[inl][:, :, 2]))[:2]
+        cov[:2, :2] += np.outer(g, g) * np.mean(height_mse[inl])
         inl = inl & (err_px <= loc.cfg.positioning.inlier_px)
     return p, cov, inl, float(dtheta @ prior_info[3:, 3:] @ dtheta)
+
+
+def test_the_fix_covariance_carries_a_lift_its_landmarks_share(camera, pipeline, monkeypatch):
+    """The refinement weighs its landmarks' errors as independent, but their heights share much of theirs. Its
+    covariance also carries their mean squared height error (0.3 m here) as one lift they all share, through how
+    far such a lift moves the solution (found here by lifting them 1 cm), with the attitude known to 1 degree:
+    a grid around nadir does not move, a grid at one side of the image, 25 to 35 m off nadir from 40 m, moves
+    by most of the lift."""
+    p_true = np.array([0.0, 0.0, -40.0])
+    grid = np.array([[n, e, 0.0] for n in np.linspace(-15.0, 15.0, 7) for e in np.linspace(-15.0, 15.0, 7)])
+
+    def refine(pts, lift_m=0.0, height_mse=True):
+        info = np.repeat(np.diag([1e4, 1e4, 1.0 / 0.3**2])[None], len(pts), axis=0)
+        lm = LandmarkMap()
+        lm.add(np.zeros((len(pts), 32), np.uint8), pts + [0.0, 0.0, lift_m], info, np.ones(len(pts)))
+        if not height_mse:
+            monkeypatch.setattr(lm, "height_mse_m2", lambda ids: np.zeros(len(ids)))
+        loc = Localiser(pipeline, camera, R_BODY_CAM_DOWN, lm)
+        uv, _ = CameraPose(p_true, R_BODY_CAM_DOWN).project(camera, pts)
+        d = camera.pixels_to_rays_cam(uv) @ R_BODY_CAM_DOWN.T
+        L = lm.p_ned_m[: len(pts)].astype(float)
+        corr = _Correspondences(np.arange(len(pts)), np.arange(len(pts)), L, d, L[:, :2], np.full(len(pts), 0.1))
+        fit = loc._refine(p_true, corr, np.ones(len(pts), bool), 40.0, prior_info=loc._prior_info(np.deg2rad(1.0), None))
+        assert fit.inl.all()
+        return fit
+
+    for pts, least, most in ((grid, 0.0, 0.01), (grid * [0.6, 0.3, 0.0] + [0.0, 30.0, 0.0], 0.6, 1.0)):
+        fit = refine(pts)
+        g = (refine(pts, lift_m=0.01).p[:2] - fit.p[:2]) / 0.01
+        assert least <= np.linalg.norm(g) <= most
+        cov_apart = refine(pts, height_mse=False).cov
+        np.testing.assert_allclose(fit.cov[:2, :2] - cov_apart[:2, :2], np.outer(g, g) * 0.3**2, rtol=0.02, atol=1e-6)
 
 
 def test_a_seed_whose_members_cannot_come_near_the_best_is_not_refined(camera, pipeline, monkeypatch):

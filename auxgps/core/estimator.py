@@ -292,7 +292,9 @@ class Estimator:
         self._frame_fault: str | None = None  # the camera fault in force (its kind), for the events log
         self._featureless = False  # frames have had too few features to locate from (water, a bare field)
         self._featureless_flip_t_s: float | None = None  # since when frames have said otherwise
-        self._ambiguous: tuple[float, float] | None = None  # (when, how far apart) the last ambiguous frame's rivals
+        # The last ambiguous frame: when, how far apart its rivals were, where the filter had the camera (north,
+        # east) and half the shorter side of its footprint on the ground, m
+        self._ambiguous: tuple[float, float, np.ndarray, float] | None = None
 
     # -- telemetry -----------------------------------------------------------------------------------------
 
@@ -762,8 +764,9 @@ class Estimator:
             if job.heading is not None:
                 self._turn_map(t, job.heading.offset_rad)
         if not isinstance(res, Fix):
-            if res.rivals_apart_m is not None and not job.mapping:
-                self._ambiguous = (t, res.rivals_apart_m)
+            if res.rivals_apart_m is not None and not job.mapping and self.filter is not None:
+                half_side_m = max(job.alt_above_origin_m, 0.0) * min(self.camera.width_px, self.camera.height_px) / (2.0 * self.camera.focal_px)
+                self._ambiguous = (t, res.rivals_apart_m, self.filter.estimate_at(t).p_ned_m[:2].copy(), half_side_m)
             return FrameResult(t, "none", res.reason, **common)
         if self.filter is None:
             return self._acquire(res, common)
@@ -788,9 +791,8 @@ class Estimator:
         if held is not None:
             return FrameResult(t, "visual", held, decision=GateDecision(res.t_s, False, np.nan, held), **common)
         cov_ne = res.cov_ned_m2[:2, :2]
-        amb = self._ambiguous
-        if amb is not None and 0.0 <= t - amb[0] <= self.cfg.fusion.ambiguity_memory_s:
-            cov_ne = cov_ne + np.eye(2) * amb[1] ** 2  # a neighbour frame could not tell two readings this far apart
+        if self._in_doubt(t):
+            cov_ne = cov_ne + np.eye(2) * self._ambiguous[1] ** 2  # a neighbour frame could not tell two readings this far apart
         with self.stopwatch("filtering"):
             decision = self.filter.update_position(res.t_s, res.p_ned_m[:2], cov_ne, visual=True, prior_share=res.prior_share)
         if decision.accepted:
@@ -802,6 +804,18 @@ class Estimator:
             common["note"] = _joined(common["note"], self._telemetry_fault(
                 f"visual fix refused: {decision.reason} ({self.cfg.fusion.history_s:g} s); frames are late", t))
         return FrameResult(t, "visual", decision.reason, decision=decision, **common)
+
+    def _in_doubt(self, t: float) -> bool:
+        """Whether the last ambiguous frame still casts doubt on a fix at ``t``: for ``fusion.ambiguity_memory_s``
+        after it, and for as long as the camera stays within half its footprint's shorter side of where that frame
+        was taken (hovering or descending over it, the ground that looked alike is still what it sees)."""
+        amb = self._ambiguous
+        if amb is None or t < amb[0]:
+            return False
+        if t - amb[0] <= self.cfg.fusion.ambiguity_memory_s:
+            return True
+        moved_m = float(np.linalg.norm(self.filter.estimate_at(t).p_ned_m[:2] - amb[2]))
+        return moved_m < 0.5 * amb[3]
 
     def _held_back(self, fix: Fix) -> str | None:
         """Why ``fix`` is held back from a lost filter (one the supervisor does not believe: GPS_INPUT says no fix),

@@ -492,6 +492,12 @@ class LandmarkMap:
         b_along = b0 * x + b1 * y + b2 * z
         return var + 0.5 * (b0 * b0 + b1 * b1 + b2 * b2 - b_along * b_along)
 
+    def height_mse_m2(self, ids: np.ndarray) -> np.ndarray:
+        """(M,) each landmark's mean squared height error, m^2: its height variance and the square of its
+        triangulation's expected bias down (see :meth:`triangulation_bias_m`)."""
+        c = self._cofactors(ids)
+        return c[5] / c[6] + self._bias_from_cofactors(ids, *c)[2] ** 2
+
     def triangulation_bias_m(self, ids: np.ndarray) -> np.ndarray:
         """(M, 3) m: how far the map's placement of each landmark is expected to lie from it, toward the cameras
         that saw it: ``-A^-1 sum 2 s^2 t d / sigma^2`` (A its information). The point closest to rays whose

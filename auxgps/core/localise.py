@@ -629,6 +629,11 @@ class Localiser:
         barometer ties the height and the telemetry ties ``dtheta`` to zero with their sigmas. Where the image
         cannot tell a tilt from a shift (one small object), the attitude prior decides and its uncertainty
         lands in the position covariance; where it can (objects spread over the view), both get better.
+        The landmarks' errors are weighed as independent, but their heights share much of theirs (the same views
+        triangulated them, docs/missions.md): the position covariance also carries their mean squared height
+        error taken as one shared lift, through how far such a lift moves the solution. Inliers around nadir
+        do not feel it; inliers all at one side of the image, 30 m off nadir from 40 m, read it as a tilt and a
+        shift, and move by most of it where the attitude is known to a degree.
         Inliers are re-selected by reprojection error, and weighed by it in the fit's quality: a small cube read
         off by its height (its top corners taken for its bottom ones) keeps its inliers within the tolerance,
         but 2 to 3 px off where the right reading has them within 1. ``pixel_size``: full-resolution px per
@@ -646,6 +651,7 @@ class Localiser:
         L, d = corr.L[idx], corr.d[idx]
         # A landmark's uncertainty across its ray (per axis): off nadir, its height error counts as well.
         lm_var = self.map.variance_across_rays_m2(corr.lm_id[idx], d)
+        height_mse = self.map.height_mse_m2(corr.lm_id[idx])
         kept = np.ones(len(idx), bool)
         d_dot_L = np.einsum("ki,ki->k", d, L)
         PL = L - d_dot_L[:, None] * d  # P_k L_k, P_k = I - d_k d_k^T
@@ -686,8 +692,14 @@ class Localiser:
             err_px = np.sqrt(resid2) / np.maximum(t, 1e-6) * f
             chi2 = float(w @ resid2)
             dof = max(2 * n_inl - 3, 1)
-            cov_all = np.linalg.inv(A) * max(1.0, chi2 / dof)
-            cov, turn_var = cov_all[:3, :3], float(cov_all[5, 5])
+            A_inv = np.linalg.inv(A)
+            cov_all = A_inv * max(1.0, chi2 / dof)
+            cov, turn_var = cov_all[:3, :3].copy(), float(cov_all[5, 5])
+            # The inliers' height errors as one they share: moving every landmark 1 m down moves the solved
+            # position by g, since the barometer holds the camera's height (the move is read as a shift and a tilt).
+            lift = np.concatenate([w.sum() * eye3[:, 2] - (d * w[:, None]).T @ d[:, 2], wtd_x[:, 2]])
+            g = (A_inv @ lift)[:2]
+            cov[:2, :2] += np.outer(g, g) * float(np.mean(height_mse[kept]))
             kept &= err_px <= cfg.inlier_px * pixel_size
         attitude_m2 = float(dtheta @ prior_info[3:, 3:] @ dtheta)
         fit_quality = float(np.sum(np.clip(1.0 - np.square(err_px[kept] / (cfg.inlier_px * pixel_size)), 0.0, 1.0)))
