@@ -4,8 +4,8 @@
 
 Reads the flight's MAVLink log (a recording's ``flight.tlog``, as `auxgps run --record` writes it) with pymavlink:
 ATTITUDE (the autopilot's EKF), GPS_RAW_INT (GPS1) and SIM_STATE (the simulator's truth, which the simulated
-camera renders). Prints the EKF's roll, pitch and yaw error against the truth (overall, then per window of the
-flight, with the yaw rate), and GPS1's error against the truth at its fix time for a range of receiver lags (the
+camera renders). Prints the EKF's roll, pitch and yaw error against the truth (overall, how the tilt error
+changes over a lag, then per window of the flight, with the yaw rate), and GPS1's error against the truth at its fix time for a range of receiver lags (the
 lag that fits best is what `auxgps run --gps1-lag-ms` should say). Times: SIM_STATE and ATTITUDE by their arrival,
 GPS_RAW_INT's fix time (boot clock) moved onto arrival by the least ATTITUDE latency.
 """
@@ -57,6 +57,16 @@ def main() -> int:
         errs[name] = wrap_deg(ekf - s[:, k + 1])
         d = errs[name]
         print(f"{name:5s}: EKF - truth {d.mean():+.3f} deg mean, {np.sqrt(np.mean(d**2)):.3f} RMS, {np.abs(d).max():.3f} max")
+    # How the tilt error wanders: its change over a lag, both axes (what the filter's tilt_walk_deg_sqrt_s stands for).
+    t_even = np.arange(s[0, 0] + 30.0, s[-1, 0], 0.5)  # from 30 s in: the EKF settled
+    tilt = np.column_stack([np.interp(t_even, s[:, 0], errs[name]) for name in ("roll", "pitch")])
+    print("tilt error's change over a lag (roll and pitch together): RMS, 99th percentile of |.|, RMS per sqrt(s)")
+    for lag_s in (1, 2, 5, 10, 20):
+        k = int(lag_s / 0.5)
+        if len(tilt) > k:
+            ch = tilt[k:] - tilt[:-k]
+            rms = np.sqrt(np.mean(ch**2))
+            print(f"  {lag_s:3d} s: {rms:.3f} deg, {np.percentile(np.abs(ch), 99):.3f} deg, {rms / np.sqrt(lag_s):.3f} deg/sqrt(s)")
     yaw_rate = np.degrees(np.abs(np.gradient(np.unwrap(s[:, 5]), s[:, 0])))
     print(f"per {args.window_s:g} s: yaw error mean and max |.|, truth yaw, max yaw rate")
     for k in range(0, int(s[-1, 0] - t0) + 1, int(args.window_s)):

@@ -68,6 +68,12 @@ class TelemetryNoiseConfig:
     # correlation time; 0 (the default) leaves it out. config/sim/heading_drift.yaml sets what SITL showed.
     heading_error_deg: NonNegative = 0.0
     heading_error_tau_s: Positive = 60.0
+    # So is the tilt (roll and pitch, each its own process): ArduCopter SITL's EKF against its truth wanders by 0.12
+    # deg RMS per axis, changing by 0.09 deg RMS over 5 s and 0.12 over 10 s (tools/sitl_telemetry_error.py), as a
+    # first-order Gauss-Markov process of 0.09 deg over 7 s would; 0 (the default) leaves it out, the white
+    # attitude_deg alone. config/sim/tilt_wander.yaml sets what SITL showed.
+    tilt_error_deg: NonNegative = 0.0
+    tilt_error_tau_s: Positive = 7.0
     accel_noise_m_s2: NonNegative = 0.1  # per IMU sample
     accel_bias_m_s2: NonNegative = 0.1  # one sigma of the constant bias drawn per run, per axis (body)
     imu_rate_hz: Annotated[float, Field(ge=50, le=1000)] = 100.0

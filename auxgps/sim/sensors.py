@@ -5,7 +5,8 @@ At each simulation step the autopilot reports what it would at its rates: an att
 ground), and GPS1 (at ``gps_rate_hz``), which reaches it ``gps1_lag_s`` after its receiver measured it. From
 ``gps_denied_from_s`` on, GPS1 reports no fix (fix type 1, no satellites, no position), as a jammed receiver does.
 With ``heading_error_deg`` set, the attitude's heading also carries a slowly wandering error (first-order
-Gauss-Markov, drawn per run from its own generator, so the other streams are those of a run without it).
+Gauss-Markov, drawn per run from its own generator, so the other streams are those of a run without it); with
+``tilt_error_deg``, its roll and pitch too (each its own process, from a generator of their own).
 """
 
 from __future__ import annotations
@@ -38,6 +39,13 @@ class Sensors:
             self._heading_sigma_rad = np.deg2rad(noise.heading_error_deg)
             self._heading_err_rad = float(self._rng_heading.standard_normal() * self._heading_sigma_rad)
             self._heading_keep = float(np.exp(-self.imu_every * dt / noise.heading_error_tau_s))
+        self._tilt_err_rad = np.zeros(2)
+        self._rng_tilt = None
+        if noise.tilt_error_deg > 0:
+            self._rng_tilt = np.random.default_rng(rng_imu.integers(2**63))
+            self._tilt_sigma_rad = np.deg2rad(noise.tilt_error_deg)
+            self._tilt_err_rad = self._rng_tilt.standard_normal(2) * self._tilt_sigma_rad
+            self._tilt_keep = float(np.exp(-self.imu_every * dt / noise.tilt_error_tau_s))
 
     def _rates_body(self, i: int) -> np.ndarray:
         """The body's true rates (p, q, r) at step ``i``, rad/s, as the autopilot's gyros report them."""
@@ -60,6 +68,10 @@ class Sensors:
                 k = self._heading_keep
                 self._heading_err_rad = k * self._heading_err_rad + np.sqrt(1.0 - k * k) * self._heading_sigma_rad * self._rng_heading.standard_normal()
                 euler = euler + np.array([0.0, 0.0, self._heading_err_rad])
+            if self._rng_tilt is not None:
+                k = self._tilt_keep
+                self._tilt_err_rad = k * self._tilt_err_rad + np.sqrt(1.0 - k * k) * self._tilt_sigma_rad * self._rng_tilt.standard_normal(2)
+                euler = euler + np.array([*self._tilt_err_rad, 0.0])
             out += [Attitude(t_imu, euler, self._rates_body(i)), Imu(t_imu, f_body)]
         if i % self.baro_every == 0:
             alt = -traj.p_ned_m[i, 2] + noise.altitude_m * self.rng_tel.standard_normal()
