@@ -651,7 +651,6 @@ class Localiser:
         L, d = corr.L[idx], corr.d[idx]
         # A landmark's uncertainty across its ray (per axis): off nadir, its height error counts as well.
         lm_var = self.map.variance_across_rays_m2(corr.lm_id[idx], d)
-        height_mse = self.map.height_mse_m2(corr.lm_id[idx])
         kept = np.ones(len(idx), bool)
         d_dot_L = np.einsum("ki,ki->k", d, L)
         PL = L - d_dot_L[:, None] * d  # P_k L_k, P_k = I - d_k d_k^T
@@ -663,6 +662,7 @@ class Localiser:
         cov = np.full((3, 3), np.nan)
         turn_var = np.inf
         err_px = np.full(len(idx), np.inf)  # fewer than two inliers: no fit, no quality
+        fit = None  # the last fit's inverse information, weights and [sum w t d]x's down column
         for _ in range(3):
             n_inl = int(kept.sum())
             if n_inl < 2:
@@ -694,13 +694,18 @@ class Localiser:
             dof = max(2 * n_inl - 3, 1)
             A_inv = np.linalg.inv(A)
             cov_all = A_inv * max(1.0, chi2 / dof)
-            cov, turn_var = cov_all[:3, :3].copy(), float(cov_all[5, 5])
+            cov, turn_var = cov_all[:3, :3], float(cov_all[5, 5])
+            fit = (A_inv, w, wtd_x[:, 2])
+            kept &= err_px <= cfg.inlier_px * pixel_size
+        if fit is not None:
             # The inliers' height errors as one they share: moving every landmark 1 m down moves the solved
             # position by g, since the barometer holds the camera's height (the move is read as a shift and a tilt).
-            lift = np.concatenate([w.sum() * eye3[:, 2] - (d * w[:, None]).T @ d[:, 2], wtd_x[:, 2]])
+            A_inv, w, wtd_x_down = fit
+            lift = np.concatenate([-((w * d[:, 2]) @ d), wtd_x_down])
+            lift[2] += w.sum()
             g = (A_inv @ lift)[:2]
-            cov[:2, :2] += np.outer(g, g) * float(np.mean(height_mse[kept]))
-            kept &= err_px <= cfg.inlier_px * pixel_size
+            cov = cov.copy()
+            cov[:2, :2] += np.outer(g, g) * float(np.mean(self.map.height_mse_m2(corr.lm_id[idx[w > 0]])))
         attitude_m2 = float(dtheta @ prior_info[3:, 3:] @ dtheta)
         fit_quality = float(np.sum(np.clip(1.0 - np.square(err_px[kept] / (cfg.inlier_px * pixel_size)), 0.0, 1.0)))
         inl = np.zeros(len(inl), bool)
