@@ -766,6 +766,30 @@ def test_greedy_one_to_one_in_rounds_keeps_the_pairs_the_loop_keeps(seed):
     assert len(_greedy_one_to_one_in_rounds(np.zeros(0, int), np.zeros(0, int))) == 0
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_spots_are_the_connected_components_of_features_within_the_radius(seed):
+    """Features chained within the radius share a spot id, numbered as scipy's connected components number them;
+    checked against scipy on frames of clustered features (pyramid duplicates, and chains of several)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from auxgps.core.features import spots
+
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform([0, 0], [1280, 720], (300, 2))
+    uv = np.concatenate([centres, centres[:120] + rng.normal(0, 1.0, (120, 2)), centres[:40] + rng.normal(0, 2.5, (40, 2))])
+    uv = uv[rng.permutation(len(uv))]
+    tree = cKDTree(uv)
+    pairs = tree.query_pairs(2.0, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs), bool), (pairs[:, 0], pairs[:, 1])), shape=(len(uv), len(uv)))
+    expected = connected_components(graph, directed=False)[1]
+    got = spots(tree, 2.0)
+    np.testing.assert_array_equal(got, expected)
+    assert len(np.unique(got)) < len(uv)  # some features did share a spot
+    np.testing.assert_array_equal(spots(cKDTree(uv[:1]), 2.0), [0])
+
+
 def test_common_shift_is_the_mean_of_the_densest_cluster_of_offsets():
     """A frame's candidate offsets: a tight cluster at the GPS and attitude shift, a looser second cluster (a
     repeated pattern) and uniform clutter out to the match radius. The shift is the first cluster's mean; too few
