@@ -128,6 +128,17 @@ class FrameResult:
 
 
 @dataclass(frozen=True)
+class AmbiguousView:
+    """The last frame that could not tell two readings apart: when (``t_s``), how far apart its rivals were, where
+    the filter had the camera (north, east, m) and half the shorter side of its footprint on the ground, m."""
+
+    t_s: float
+    rivals_apart_m: float
+    p_ne_m: np.ndarray
+    half_side_m: float
+
+
+@dataclass(frozen=True)
 class Output:
     """What auxgps tells the autopilot at ``t_s``: the GPS_INPUT content (None before the local frame is known),
     the supervisor's decision, and the estimate it came from, which describes ``t_described_s``."""
@@ -292,9 +303,7 @@ class Estimator:
         self._frame_fault: str | None = None  # the camera fault in force (its kind), for the events log
         self._featureless = False  # frames have had too few features to locate from (water, a bare field)
         self._featureless_flip_t_s: float | None = None  # since when frames have said otherwise
-        # The last ambiguous frame: when, how far apart its rivals were, where the filter had the camera (north,
-        # east) and half the shorter side of its footprint on the ground, m
-        self._ambiguous: tuple[float, float, np.ndarray, float] | None = None
+        self._ambiguous: AmbiguousView | None = None  # the last frame that found its ground ambiguous
 
     # -- telemetry -----------------------------------------------------------------------------------------
 
@@ -766,7 +775,7 @@ class Estimator:
         if not isinstance(res, Fix):
             if res.rivals_apart_m is not None and not job.mapping and self.filter is not None:
                 half_side_m = max(job.alt_above_origin_m, 0.0) * min(self.camera.width_px, self.camera.height_px) / (2.0 * self.camera.focal_px)
-                self._ambiguous = (t, res.rivals_apart_m, self.filter.estimate_at(t).p_ned_m[:2].copy(), half_side_m)
+                self._ambiguous = AmbiguousView(t, res.rivals_apart_m, self.filter.estimate_at(t).p_ned_m[:2].copy(), half_side_m)
             return FrameResult(t, "none", res.reason, **common)
         if self.filter is None:
             return self._acquire(res, common)
@@ -792,7 +801,7 @@ class Estimator:
             return FrameResult(t, "visual", held, decision=GateDecision(res.t_s, False, np.nan, held), **common)
         cov_ne = res.cov_ned_m2[:2, :2]
         if self._in_doubt(t):
-            cov_ne = cov_ne + np.eye(2) * self._ambiguous[1] ** 2  # a neighbour frame could not tell two readings this far apart
+            cov_ne = cov_ne + np.eye(2) * self._ambiguous.rivals_apart_m ** 2  # a neighbour frame could not tell two readings this far apart
         with self.stopwatch("filtering"):
             decision = self.filter.update_position(res.t_s, res.p_ned_m[:2], cov_ne, visual=True, prior_share=res.prior_share)
         if decision.accepted:
@@ -810,12 +819,12 @@ class Estimator:
         after it, and for as long as the camera stays within half its footprint's shorter side of where that frame
         was taken (hovering or descending over it, the ground that looked alike is still what it sees)."""
         amb = self._ambiguous
-        if amb is None or t < amb[0]:
+        if amb is None or t < amb.t_s:
             return False
-        if t - amb[0] <= self.cfg.fusion.ambiguity_memory_s:
+        if t - amb.t_s <= self.cfg.fusion.ambiguity_memory_s:
             return True
-        moved_m = float(np.linalg.norm(self.filter.estimate_at(t).p_ned_m[:2] - amb[2]))
-        return moved_m < 0.5 * amb[3]
+        moved_m = float(np.linalg.norm(self.filter.estimate_at(t).p_ned_m[:2] - amb.p_ne_m))
+        return moved_m < 0.5 * amb.half_side_m
 
     def _held_back(self, fix: Fix) -> str | None:
         """Why ``fix`` is held back from a lost filter (one the supervisor does not believe: GPS_INPUT says no fix),

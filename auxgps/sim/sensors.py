@@ -20,6 +20,25 @@ from auxgps.sim.flight import TelemetryNoiseConfig, Trajectory, sense_imu
 NO_FIX = 1
 
 
+class _Wander:
+    """A first-order Gauss-Markov error of ``n`` axes: ``sigma_deg`` steady one sigma per axis, correlation time
+    ``tau_s``, stepped every ``step_s``; rad. Its generator is seeded from ``rng`` (one draw), and its first value
+    drawn from the steady distribution."""
+
+    def __init__(self, rng: np.random.Generator, sigma_deg: float, tau_s: float, step_s: float, n: int) -> None:
+        self._rng = np.random.default_rng(rng.integers(2**63))
+        self._sigma_rad = np.deg2rad(sigma_deg)
+        self._keep = float(np.exp(-step_s / tau_s))
+        self._n = n
+        self.value_rad = self._rng.standard_normal(n) * self._sigma_rad
+
+    def step(self) -> np.ndarray:
+        """Advance one step; the new error, rad (n,)."""
+        k = self._keep
+        self.value_rad = k * self.value_rad + np.sqrt(1.0 - k * k) * self._sigma_rad * self._rng.standard_normal(self._n)
+        return self.value_rad
+
+
 class Sensors:
     """The events of one trajectory, step by step (:meth:`events_at`), in the order the autopilot sends them."""
 
@@ -32,20 +51,13 @@ class Sensors:
         every = lambda rate_hz: max(1, int(round(1.0 / (rate_hz * dt))))  # noqa: E731
         self.imu_every, self.baro_every, self.gps_every = every(noise.imu_rate_hz), every(noise.baro_rate_hz), every(noise.gps_rate_hz)
         self._gps_pending: list[Gps1] = []  # measured, not yet reached the autopilot
-        self._heading_err_rad = 0.0
-        self._rng_heading = None
-        if noise.heading_error_deg > 0:
-            self._rng_heading = np.random.default_rng(rng_imu.integers(2**63))
-            self._heading_sigma_rad = np.deg2rad(noise.heading_error_deg)
-            self._heading_err_rad = float(self._rng_heading.standard_normal() * self._heading_sigma_rad)
-            self._heading_keep = float(np.exp(-self.imu_every * dt / noise.heading_error_tau_s))
-        self._tilt_err_rad = np.zeros(2)
-        self._rng_tilt = None
-        if noise.tilt_error_deg > 0:
-            self._rng_tilt = np.random.default_rng(rng_imu.integers(2**63))
-            self._tilt_sigma_rad = np.deg2rad(noise.tilt_error_deg)
-            self._tilt_err_rad = self._rng_tilt.standard_normal(2) * self._tilt_sigma_rad
-            self._tilt_keep = float(np.exp(-self.imu_every * dt / noise.tilt_error_tau_s))
+        # The autopilot's attitude errors that wander (heading; roll and pitch), each on its own generator drawn
+        # from the IMU's, so that turning one on leaves every other draw as it was.
+        step_s = self.imu_every * dt
+        self._heading_error = _Wander(rng_imu, noise.heading_error_deg, noise.heading_error_tau_s, step_s, 1) \
+            if noise.heading_error_deg > 0 else None
+        self._tilt_error = _Wander(rng_imu, noise.tilt_error_deg, noise.tilt_error_tau_s, step_s, 2) \
+            if noise.tilt_error_deg > 0 else None
 
     def _rates_body(self, i: int) -> np.ndarray:
         """The body's true rates (p, q, r) at step ``i``, rad/s, as the autopilot's gyros report them."""
@@ -64,14 +76,10 @@ class Sensors:
         t = float(traj.t_s[i])
         if i % self.imu_every == 0:
             t_imu, f_body, euler = sense_imu(traj, i, noise, self.bias, self.rng_imu)
-            if self._rng_heading is not None:
-                k = self._heading_keep
-                self._heading_err_rad = k * self._heading_err_rad + np.sqrt(1.0 - k * k) * self._heading_sigma_rad * self._rng_heading.standard_normal()
-                euler = euler + np.array([0.0, 0.0, self._heading_err_rad])
-            if self._rng_tilt is not None:
-                k = self._tilt_keep
-                self._tilt_err_rad = k * self._tilt_err_rad + np.sqrt(1.0 - k * k) * self._tilt_sigma_rad * self._rng_tilt.standard_normal(2)
-                euler = euler + np.array([*self._tilt_err_rad, 0.0])
+            if self._heading_error is not None:
+                euler = euler + np.array([0.0, 0.0, *self._heading_error.step()])
+            if self._tilt_error is not None:
+                euler = euler + np.array([*self._tilt_error.step(), 0.0])
             out += [Attitude(t_imu, euler, self._rates_body(i)), Imu(t_imu, f_body)]
         if i % self.baro_every == 0:
             alt = -traj.p_ned_m[i, 2] + noise.altitude_m * self.rng_tel.standard_normal()
