@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """The largest accepted fixes of a mission, and what their frames saw: for each, its true error, the one sigma it
 offered and the filter's, the gate's squared distance, its inliers, where they lie from nadir, and how far their
-landmarks are off the truth (median north, east, down).
+landmarks are off the truth (median north, east, down); with --landmarks N, each inlier's landmark of the N
+largest (its position, error, views, and when it was first seen).
 
     .venv/bin/python tools/worst_fixes.py --world config/worlds/seneca.yaml \\
         --mission config/missions/seneca_out_and_back.waypoints --alt-m 40 --gps-lost-at-waypoint 3 --seed 3 [--top 5]
@@ -23,6 +24,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     mission_arguments(ap)
     ap.add_argument("--top", type=int, default=5, help="how many fixes to show")
+    ap.add_argument("--landmarks", type=int, default=0, metavar="N",
+                    help="for the N largest, each inlier's landmark too: its error, views, when first seen, where")
     a = ap.parse_args()
     cfg = load_pipeline_config(a.config)  # the built-in defaults without --config
     rows, estimators = [], []
@@ -40,7 +43,7 @@ def main() -> None:
         if res.kind != "visual" or res.mapping or t_s < self.denied_from or not res.decision.accepted:
             return
         fix, cam_ne = res.located, self.traj.p_ned_m[i, :2]
-        row = {"t_s": t_s - self.denied_from, "err_m": float(np.linalg.norm(fix.p_ned_m[:2] - cam_ne)),
+        row = {"t_s": t_s - self.denied_from, "denied_from_s": self.denied_from, "err_m": float(np.linalg.norm(fix.p_ned_m[:2] - cam_ne)),
                "offered_m": res.decision.fix_sigma_m, "filter_m": res.decision.filter_sigma_m, "m2": res.decision.mahalanobis2,
                "inliers": 0, "ids": None, "truth": None}
         if fix.inliers is not None and len(fix.inliers.lm_id):
@@ -65,6 +68,11 @@ def main() -> None:
             med = np.median(off[ok], axis=0) if ok.any() else np.full(3, np.nan)
             line += f"  centroid {centroid[0]:+.1f} {centroid[1]:+.1f}  landmark error {med[0]:+.3f} {med[1]:+.3f} {med[2]:+.3f}"
         print(line)
+        if r["truth"] is not None and rows.index(r) < a.landmarks:
+            for lm, p_lm, o in zip(r["ids"], landmarks.p_ned_m[r["ids"]].astype(float), p - r["truth"]):
+                print(f"      landmark {lm}: at {p_lm[0]:+.1f} {p_lm[1]:+.1f} {p_lm[2]:+.2f}, error {o[0]:+.3f} {o[1]:+.3f} {o[2]:+.3f}, "
+                      f"seen {int(landmarks.n_seen[lm])} of {int(landmarks.n_visible[lm])} frames in view, "
+                      f"first seen {float(landmarks.t_first_s[lm]) - r['denied_from_s']:+.1f} s from the loss")
 
 
 if __name__ == "__main__":
