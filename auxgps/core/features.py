@@ -267,54 +267,37 @@ GREEDY_LOOP_MAX_PAIRS = 5000
 
 
 def greedy_one_to_one(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The positions of the pairs ``(a[k], b[k])`` (non-negative integers), taken in order, that a greedy one-to-one
-    assignment keeps (a pair is kept unless an earlier kept pair has its ``a`` or its ``b``), ascending.
+    """The positions of the pairs ``(a[k], b[k])``, taken in order, that a greedy one-to-one assignment keeps (a
+    pair is kept unless an earlier kept pair has its ``a`` or its ``b``), ascending.
 
-    A pair that is the first of its ``a`` and the first of its ``b`` in the list is kept by the sequential greedy
-    (nothing before it can block it), and every later pair sharing its ``a`` or ``b`` is blocked by it. So those
-    are taken at once, and only the pairs neither kept nor blocked by them are decided one by one: a short list
-    pair by pair, a long one (over ``GREEDY_LOOP_MAX_PAIRS``) in rounds of the same step. The same pairs either way.
+    A short list pair by pair; a long one (over ``GREEDY_LOOP_MAX_PAIRS``) in rounds: a pair that is the first
+    remaining one of both its ``a`` and its ``b`` is kept by the sequential greedy too (everything before it that
+    shares either was dropped for a kept pair still earlier), so each round keeps all such pairs and drops the
+    pairs they block; the first remaining pair always qualifies. The same pairs either way.
     """
-    a, b = np.asarray(a), np.asarray(b)
-    if len(a) == 0:
-        return np.zeros(0, np.int64)
-    first = _first_of_each(a) & _first_of_each(b)
-    used_a = np.zeros(int(a.max()) + 1, bool)
-    used_b = np.zeros(int(b.max()) + 1, bool)
-    used_a[a[first]] = True
-    used_b[b[first]] = True
-    rest = np.flatnonzero(~(used_a[a] | used_b[b]))  # the first pairs are in neither set's complement
-    if len(rest) > GREEDY_LOOP_MAX_PAIRS:
-        kept_rest = rest[_greedy_one_to_one_in_rounds(a[rest], b[rest])]
-    else:
-        taken_a, taken_b, kept = set(), set(), []
-        for k, x, y in zip(rest.tolist(), a[rest].tolist(), b[rest].tolist()):
-            if x not in taken_a and y not in taken_b:
-                taken_a.add(x)
-                taken_b.add(y)
-                kept.append(k)
-        kept_rest = np.array(kept, np.int64)
-    out = np.concatenate([np.flatnonzero(first), kept_rest])
-    out.sort()
-    return out
-
-
-def _first_of_each(x: np.ndarray) -> np.ndarray:
-    """Boolean (N,) marking the first occurrence of each value of the non-negative integers ``x``."""
-    n = len(x)
-    first_at = np.full(int(x.max()) + 1, n)
-    np.minimum.at(first_at, x, np.arange(n))
-    return first_at[x] == np.arange(n)
+    if len(a) <= GREEDY_LOOP_MAX_PAIRS:
+        used_a, used_b, kept_k = set(), set(), []
+        for k, (x, y) in enumerate(zip(np.asarray(a).tolist(), np.asarray(b).tolist())):
+            if x not in used_a and y not in used_b:
+                used_a.add(x)
+                used_b.add(y)
+                kept_k.append(k)
+        return np.array(kept_k, np.int64)
+    return _greedy_one_to_one_in_rounds(np.asarray(a), np.asarray(b))
 
 
 def _greedy_one_to_one_in_rounds(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """:func:`greedy_one_to_one` in rounds of array work, for long lists: each round keeps the pairs first of both
-    their ``a`` and ``b`` among those left, and drops the pairs they block; the first one left always qualifies."""
+    """:func:`greedy_one_to_one` in rounds of array work, for long lists."""
+    def first_of_each(x: np.ndarray) -> np.ndarray:
+        first = np.zeros(len(x), bool)
+        first[np.unique(x, return_index=True)[1]] = True
+        return first
+
     k = np.arange(len(a))
     kept = []
     while len(k):
         ak, bk = a[k], b[k]
-        keep = _first_of_each(ak) & _first_of_each(bk)
+        keep = first_of_each(ak) & first_of_each(bk)
         kept.append(k[keep])
         k = k[~(np.isin(ak, ak[keep]) | np.isin(bk, bk[keep]))]
     return np.sort(np.concatenate(kept)) if kept else np.zeros(0, np.int64)
