@@ -19,16 +19,16 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # tools/, for gps_consistency
+
+from gps_consistency import fit_similarity_2d  # noqa: E402
 
 
 def similarity(src_ne: np.ndarray, dst_ne: np.ndarray) -> tuple[float, float, np.ndarray]:
-    """``dst ~ s R src + t`` by least squares (north/east as complex numbers): the scale less one, the turn (rad,
+    """``dst ~ s R src + t`` by least squares (tools/gps_consistency.py's fit): the scale less one, the turn (rad,
     north towards east) and the residuals (N, 2)."""
-    zs, zd = src_ne[:, 0] + 1j * src_ne[:, 1], dst_ne[:, 0] + 1j * dst_ne[:, 1]
-    A = np.column_stack([zs - zs.mean(), np.ones(len(zs))])
-    coef, *_ = np.linalg.lstsq(A, zd, rcond=None)
-    r = zd - A @ coef
-    return float(abs(coef[0]) - 1.0), float(np.angle(coef[0])), np.column_stack([r.real, r.imag])
+    sim = fit_similarity_2d(src_ne, dst_ne)
+    return sim.scale - 1.0, sim.rotation_rad, np.asarray(dst_ne, float) - sim.apply(src_ne)
 
 
 def gps_lag(misfit_ne: np.ndarray, gps_ne: np.ndarray, t_s: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
