@@ -183,6 +183,12 @@ class FusionConfig:
     # m/s^2/sqrt(s). A real accelerometer's bias drifts with temperature; the simulator's is constant, and a filter
     # told so holds the velocity better across leg ends (README, results), which no flight should count on.
     accel_bias_walk_m_s2_sqrt_s: NonNegative = 0.002
+    # The autopilot's roll and pitch are off by a tilt that wanders, and the specific force rotated by it leaves g
+    # times that tilt of horizontal acceleration (NED): one sigma per axis and its correlation time. ArduCopter
+    # SITL's EKF against its truth: 0.12 deg RMS per axis over Seneca at 8 m/s (config/sim/tilt_wander.yaml), 0.06 to
+    # 0.23 deg (0.01 to 0.04 m/s^2) over the cube world's lawnmower, its sign changing leg by leg (docs/faults.md).
+    tilt_error_deg: NonNegative = 0.15
+    tilt_error_tau_s: Positive = 10.0
     # The error visual fixes share for seconds (attitude error, map error): one sigma and correlation time.
     fix_bias_sigma_m: Positive = 0.1
     fix_bias_tau_s: Positive = 10.0

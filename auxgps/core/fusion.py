@@ -1,10 +1,16 @@
 """Fusion of visual fixes with the autopilot's IMU and attitude: an extended Kalman filter on filterpy.
 
-State (13): position NED (m), velocity NED (m/s), accelerometer bias in the body frame (m/s^2), the north/east
-error that visual fixes share (m), and the north/east offset of a prior map (m). Between fixes the
+State (15): position NED (m), velocity NED (m/s), accelerometer bias in the body frame (m/s^2), the north/east
+error that visual fixes share (m), the north/east offset of a prior map (m), and the north/east acceleration the
+autopilot's tilt error leaves out (m/s^2). Between fixes the
 filter is driven by the IMU: specific force minus the bias, rotated by the attitude, plus gravity. The bias is
 estimated because a tenth of a m/s^2 left in the specific force, integrated over a few seconds without a fix,
-is metres; it is observable from the fixes as soon as the vehicle turns. The shared fix error is what does not
+is metres; it is observable from the fixes as soon as the vehicle turns. The autopilot's attitude is off by a
+tilt that wanders (ArduCopter SITL's EKF: a tenth of a degree to a few tenths over seconds), and the specific
+force rotated by it leaves g times that tilt of horizontal acceleration, 0.02 to 0.07 m/s^2, in the NED frame:
+a body-frame bias cannot hold it through a turn (learnt on one leg, it is twice wrong after a U-turn), so it is
+its own first-order Gauss-Markov state (``tilt_error_deg``, ``tilt_error_tau_s``). Without it a filter dead
+reckoning a gap of ten seconds in a lawnmower's turns drifted metres while reporting a few decimetres. The shared fix error is what does not
 average out over frames: an error in the autopilot's attitude that lasts seconds (0.3 degrees is 8 cm at 15 m)
 and the map's own errors. Fusing twenty fixes a second as if their errors were independent would make the filter
 believe itself to a centimetre, gate out good fixes and report an accuracy that the truth does not bear out; as a
@@ -43,7 +49,7 @@ from auxgps.core.localise import PositionPrior
 log = logging.getLogger(__name__)
 
 GRAVITY_NED_M_S2 = np.array([0.0, 0.0, 9.80665])
-_N = 13
+_N = 15
 _I3 = np.arange(3)  # diagonal indices of a 3 x 3 block
 _I2 = np.arange(2)
 _EYE3 = np.eye(3)
@@ -141,9 +147,10 @@ class NavFilter:
         self.map_offset_sigma_m = float(map_offset_sigma_m)
         self._map_heading_sigma_m = 0.0  # see set_map_heading_sigma
         self._ekf = ExtendedKalmanFilter(dim_x=_N, dim_z=2)
-        self._ekf.x = np.concatenate([p_ned_m, v_ned_m_s, np.zeros(7)]).reshape(_N, 1).astype(float)
+        self._ekf.x = np.concatenate([p_ned_m, v_ned_m_s, np.zeros(9)]).reshape(_N, 1).astype(float)
         self._ekf.P = np.diag([sigma_p_m**2] * 3 + [sigma_v_m_s**2] * 3 + [cfg.accel_bias_sigma_m_s2**2] * 3
-                              + [self.fix_bias_sigma_m**2] * 2 + [self.map_offset_sigma_m**2] * 2)
+                              + [self.fix_bias_sigma_m**2] * 2 + [self.map_offset_sigma_m**2] * 2
+                              + [self.tilt_accel_sigma_m_s2**2] * 2)
         self.t_s = float(t_s)
         # Every step taken, in time order, the state after each; the first is the state it started from.
         self._history: list[_Step] = [_Step(self.t_s, self.t_s, "start", (), self._ekf.x.copy(), self._ekf.P.copy())]
@@ -334,6 +341,10 @@ class NavFilter:
         F[9, 9] = F[10, 10] = decay
         map_decay = self._map_offset_decay(dt)
         F[11, 11] = F[12, 12] = map_decay
+        tilt_decay = np.exp(-dt / cfg.tilt_error_tau_s)
+        F[_I2, _I2 + 13] = 0.5 * dt * dt
+        F[_I2 + 3, _I2 + 13] = dt
+        F[13, 13] = F[14, 14] = tilt_decay
         u = (R @ imu.f_body_m_s2 + GRAVITY_NED_M_S2).reshape(3, 1)
         q = cfg.accel_noise_m_s2_sqrt_hz**2  # white acceleration noise, continuous-time
         Q = np.zeros((_N, _N))
@@ -343,6 +354,7 @@ class NavFilter:
         Q[_I3 + 6, _I3 + 6] = cfg.accel_bias_walk_m_s2_sqrt_s**2 * dt
         Q[9, 9] = Q[10, 10] = self.fix_bias_sigma_m**2 * (1.0 - decay**2)
         Q[11, 11] = Q[12, 12] = self.map_offset_sigma_m**2 * (1.0 - map_decay**2)
+        Q[13, 13] = Q[14, 14] = self.tilt_accel_sigma_m_s2**2 * (1.0 - tilt_decay**2)
         self._ekf.F, self._ekf.B, self._ekf.Q = F, B, Q
         self._ekf.predict(u)
         self.t_s = imu.t_s
@@ -376,6 +388,9 @@ class NavFilter:
         map_decay = self._map_offset_decay(dt)
         F[11, 11] = F[12, 12] = map_decay
         Q[11, 11] = Q[12, 12] = self.map_offset_sigma_m**2 * (1.0 - map_decay**2)
+        tilt_decay = np.exp(-dt / self.cfg.tilt_error_tau_s)  # its acceleration is in the gap's unknown one
+        F[13, 13] = F[14, 14] = tilt_decay
+        Q[13, 13] = Q[14, 14] = self.tilt_accel_sigma_m_s2**2 * (1.0 - tilt_decay**2)
         self._ekf.x = F @ self._ekf.x
         self._ekf.P = F @ self._ekf.P @ F.T + Q
         self.t_s = t_s
@@ -475,6 +490,11 @@ class NavFilter:
         if self.map_offset_sigma_m <= 0:
             return 1.0
         return float(np.exp(-np.hypot(self._ekf.x[3, 0], self._ekf.x[4, 0]) * dt / self.cfg.prior_map_offset_length_m))
+
+    @property
+    def tilt_accel_sigma_m_s2(self) -> float:
+        """One sigma of the horizontal acceleration the autopilot's tilt error leaves out, per axis, m/s^2."""
+        return float(GRAVITY_NED_M_S2[2] * np.sin(np.radians(self.cfg.tilt_error_deg)))
 
     @property
     def fix_bias_sigma_m(self) -> float:
