@@ -8,6 +8,7 @@ import pytest
 from auxgps.config import FusionConfig
 from auxgps.core.fusion import GRAVITY_NED_M_S2, ImuSample, NavFilter
 from auxgps.core.geometry import R_ned_body_from_euler
+from auxgps.sim.sensors import _Wander
 
 atol = 1e-12
 LEVEL = np.eye(3)
@@ -506,14 +507,13 @@ def _dead_reckoned_after_turns(cfg, seed, tilt_deg=0.15, tau_s=10.0, t_fixes_s=6
     rng = np.random.default_rng(seed)
     dt = 1.0 / rate_hz
     f = NavFilter(cfg, 0.0, np.zeros(3), np.array([2.0, 0.0, 0.0]), 0.1, 0.05)
-    decay = np.exp(-dt / tau_s)
-    tilt_rad = rng.normal(0.0, np.radians(tilt_deg), 2)
+    tilt = _Wander(rng, tilt_deg, tau_s, dt, 2)  # the emulator's own wandering attitude error
     bias_body = rng.normal(0.0, 0.05, 3)
     p, v = np.zeros(3), np.array([2.0, 0.0, 0.0])
     per_sample = cfg.accel_noise_m_s2_sqrt_hz * np.sqrt(rate_hz)
     for k in range(1, int((t_fixes_s + gap_s) * rate_hz) + 1):
         t = k * dt
-        tilt_rad = decay * tilt_rad + np.sqrt(1.0 - decay**2) * rng.normal(0.0, np.radians(tilt_deg), 2)
+        tilt_rad = tilt.step()
         yaw = np.pi * (t // 10.0) + np.pi * np.clip(t % 10.0 - 8.0, 0.0, 2.0) / 2.0
         R_ned_body = R_ned_body_from_euler(0.0, 0.0, yaw)
         R_autopilot = R_ned_body_from_euler(tilt_rad[0], tilt_rad[1], 0.0) @ R_ned_body

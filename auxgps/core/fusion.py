@@ -6,11 +6,12 @@ autopilot's tilt error leaves out (m/s^2). Between fixes the
 filter is driven by the IMU: specific force minus the bias, rotated by the attitude, plus gravity. The bias is
 estimated because a tenth of a m/s^2 left in the specific force, integrated over a few seconds without a fix,
 is metres; it is observable from the fixes as soon as the vehicle turns. The autopilot's attitude is off by a
-tilt that wanders (ArduCopter SITL's EKF: a tenth of a degree to a few tenths over seconds), and the specific
-force rotated by it leaves g times that tilt of horizontal acceleration, 0.02 to 0.07 m/s^2, in the NED frame:
+tilt that wanders (ArduCopter SITL's EKF: 0.1 to 0.4 degrees, changing leg by leg), and the specific force
+rotated by it leaves g times that tilt of horizontal acceleration (0.01 to 0.04 m/s^2 over 10 s) in the NED frame:
 a body-frame bias cannot hold it through a turn (learnt on one leg, it is twice wrong after a U-turn), so it is
-its own first-order Gauss-Markov state (``tilt_error_deg``, ``tilt_error_tau_s``). Without it a filter dead
-reckoning a gap of ten seconds in a lawnmower's turns drifted metres while reporting a few decimetres. The shared fix error is what does not
+its own first-order Gauss-Markov state (``tilt_error_deg``, ``tilt_error_tau_s``; off by default, see the
+config). Without it a filter dead reckoning ten seconds of a survey's turns drifted metres while reporting a few
+decimetres. The shared fix error is what does not
 average out over frames: an error in the autopilot's attitude that lasts seconds (0.3 degrees is 8 cm at 15 m)
 and the map's own errors. Fusing twenty fixes a second as if their errors were independent would make the filter
 believe itself to a centimetre, gate out good fixes and report an accuracy that the truth does not bear out; as a
@@ -337,24 +338,15 @@ class NavFilter:
         B = np.zeros((_N, 3))
         B[_I3, _I3] = 0.5 * dt * dt
         B[_I3 + 3, _I3] = dt
-        decay = np.exp(-dt / cfg.fix_bias_tau_s)
-        F[9, 9] = F[10, 10] = decay
-        map_decay = self._map_offset_decay(dt)
-        F[11, 11] = F[12, 12] = map_decay
-        tilt_decay = np.exp(-dt / cfg.tilt_error_tau_s)
         F[_I2, _I2 + 13] = 0.5 * dt * dt
         F[_I2 + 3, _I2 + 13] = dt
-        F[13, 13] = F[14, 14] = tilt_decay
         u = (R @ imu.f_body_m_s2 + GRAVITY_NED_M_S2).reshape(3, 1)
         q = cfg.accel_noise_m_s2_sqrt_hz**2  # white acceleration noise, continuous-time
         Q = np.zeros((_N, _N))
         Q[_I3, _I3] = q * dt**3 / 3.0
         Q[_I3, _I3 + 3] = Q[_I3 + 3, _I3] = q * dt**2 / 2.0
         Q[_I3 + 3, _I3 + 3] = q * dt
-        Q[_I3 + 6, _I3 + 6] = cfg.accel_bias_walk_m_s2_sqrt_s**2 * dt
-        Q[9, 9] = Q[10, 10] = self.fix_bias_sigma_m**2 * (1.0 - decay**2)
-        Q[11, 11] = Q[12, 12] = self.map_offset_sigma_m**2 * (1.0 - map_decay**2)
-        Q[13, 13] = Q[14, 14] = self.tilt_accel_sigma_m_s2**2 * (1.0 - tilt_decay**2)
+        self._slow_states(F, Q, dt)
         self._ekf.F, self._ekf.B, self._ekf.Q = F, B, Q
         self._ekf.predict(u)
         self.t_s = imu.t_s
@@ -369,6 +361,18 @@ class NavFilter:
         q = self.cfg.imu_gap_accel_sigma_m_s2**2 * dt
         return q * dt**3 / 3.0, q * dt**2 / 2.0, q * dt
 
+    def _slow_states(self, F: np.ndarray, Q: np.ndarray, dt: float) -> None:
+        """Write into ``F`` and ``Q`` what ``dt`` s do to the slow states, the same with the IMU or across a gap:
+        the accelerometer bias walks; the shared fix error, the prior map's offset and the tilt's acceleration
+        decay (first-order Gauss-Markov, each keeping its steady sigma)."""
+        cfg = self.cfg
+        Q[_I3 + 6, _I3 + 6] = cfg.accel_bias_walk_m_s2_sqrt_s**2 * dt
+        for i, keep, sigma in ((9, np.exp(-dt / cfg.fix_bias_tau_s), self.fix_bias_sigma_m),
+                               (11, self._map_offset_decay(dt), self.map_offset_sigma_m),
+                               (13, np.exp(-dt / cfg.tilt_error_tau_s), self.tilt_accel_sigma_m_s2)):
+            F[i, i] = F[i + 1, i + 1] = keep
+            Q[i, i] = Q[i + 1, i + 1] = sigma**2 * (1.0 - keep**2)
+
     def _carry_across_gap(self, t_s: float) -> None:
         """No IMU from the state's time to ``t_s`` (a link outage): one sample's specific force says nothing of the
         gap, so the state is carried to ``t_s`` at constant velocity, loosened by an unknown acceleration
@@ -376,21 +380,12 @@ class NavFilter:
         dt = t_s - self.t_s
         F = np.eye(_N)
         F[_I3, _I3 + 3] = dt
-        decay = np.exp(-dt / self.cfg.fix_bias_tau_s)
-        F[9, 9] = F[10, 10] = decay
         q_pp, q_pv, q_vv = self._gap_noise(dt)
         Q = np.zeros((_N, _N))
         Q[_I3, _I3] = q_pp
         Q[_I3, _I3 + 3] = Q[_I3 + 3, _I3] = q_pv
         Q[_I3 + 3, _I3 + 3] = q_vv
-        Q[_I3 + 6, _I3 + 6] = self.cfg.accel_bias_walk_m_s2_sqrt_s**2 * dt
-        Q[9, 9] = Q[10, 10] = self.fix_bias_sigma_m**2 * (1.0 - decay**2)
-        map_decay = self._map_offset_decay(dt)
-        F[11, 11] = F[12, 12] = map_decay
-        Q[11, 11] = Q[12, 12] = self.map_offset_sigma_m**2 * (1.0 - map_decay**2)
-        tilt_decay = np.exp(-dt / self.cfg.tilt_error_tau_s)  # its acceleration is in the gap's unknown one
-        F[13, 13] = F[14, 14] = tilt_decay
-        Q[13, 13] = Q[14, 14] = self.tilt_accel_sigma_m_s2**2 * (1.0 - tilt_decay**2)
+        self._slow_states(F, Q, dt)  # the tilt's acceleration is not carried: it is in the gap's unknown one
         self._ekf.x = F @ self._ekf.x
         self._ekf.P = F @ self._ekf.P @ F.T + Q
         self.t_s = t_s
