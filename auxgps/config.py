@@ -187,11 +187,10 @@ class FusionConfig:
     # times that tilt of horizontal acceleration (NED): one sigma per axis and its correlation time. ArduCopter
     # SITL's EKF against its truth: 0.12 deg RMS per axis over Seneca at 8 m/s (config/sim/tilt_wander.yaml), 0.06 to
     # 0.23 deg (0.01 to 0.04 m/s^2, 10 s means) over the cube world's survey, changing leg by leg (docs/sitl.md).
-    # 0.1 deg keeps SITL's replays honest through gaps (docs/sitl.md), but is off (0) by default: while GPS1 is
-    # fused, the freedom it gives lets the filter follow a slowly dragged GPS1 (the emulator's 0.5 m/s drag while
-    # mapping was found after 11.7 s, 5.9 m, instead of 2.0 s, and the map geotagged off by as much). It should
-    # act only once GPS1 is lost; not done yet.
-    tilt_error_deg: NonNegative = 0.0
+    # 0.1 deg keeps SITL's replays honest through gaps (docs/sitl.md). GPS1 readings do not teach it (they widen
+    # the position and velocity by it, but a taught tilt let the filter follow a slowly dragged GPS1 as an
+    # acceleration); visual fixes do.
+    tilt_error_deg: NonNegative = 0.1
     tilt_error_tau_s: Positive = 10.0
     # The error visual fixes share for seconds (attitude error, map error): one sigma and correlation time.
     fix_bias_sigma_m: Positive = 0.1

@@ -536,3 +536,23 @@ def test_dead_reckoning_stays_honest_through_turns_with_the_autopilots_tilt_wand
     blind = np.array([_dead_reckoned_after_turns(FusionConfig(tilt_error_deg=0.0), seed) for seed in range(12)])
     assert honest.mean() < 3.0 and np.mean(honest < 11.83) >= 11 / 12, honest  # 11.83: 3 sigma, 2 dof
     assert blind.mean() > 3.0 * honest.mean(), (blind, honest)
+
+
+def test_gps1_readings_widen_by_the_tilt_but_do_not_teach_it_and_visual_fixes_do():
+    """A GPS1 reading's update leaves the tilt's acceleration as it was, its mean and its variance (taught, the tilt
+    let the filter follow a slowly dragged GPS1 as an acceleration); the position and velocity it updates are those
+    the optimal gain gives in every other state. A visual fix teaches it."""
+    cfg = FusionConfig(tilt_error_deg=0.1)
+    rng = np.random.default_rng(14)
+    f = make(cfg, sigma_p=0.5, sigma_v=0.2)
+    for imu in _moving_imus(rng, n=300):  # 3 s: the tilt's acceleration widens and correlates with the motion
+        f.propagate(imu)
+    P_before = f._ekf.P.copy()
+    assert np.all(np.diag(P_before[0:2, 13:15]) > 0) and np.all(np.diag(P_before[3:5, 13:15]) > 0)
+    p_ne_m = f.estimate().p_ned_m[:2]
+    assert f.update_position(3.0, p_ne_m + [0.4, -0.3], np.eye(2) * 0.1**2).accepted
+    np.testing.assert_array_equal(f._ekf.x[13:15, 0], 0.0)
+    np.testing.assert_allclose(f._ekf.P[13:15, 13:15], P_before[13:15, 13:15], rtol=1e-12)
+    assert f._ekf.P[0, 0] < 0.1 * P_before[0, 0]  # the position did take the reading
+    assert f.update_position(3.0, p_ne_m + [0.5, -0.2], np.eye(2) * 0.1**2, visual=True).accepted
+    assert np.all(np.abs(f._ekf.x[13:15, 0]) > 0) and f._ekf.P[13, 13] < P_before[13, 13]
