@@ -540,8 +540,8 @@ def test_dead_reckoning_stays_honest_through_turns_with_the_autopilots_tilt_wand
 
 def test_gps1_readings_widen_by_the_tilt_but_do_not_teach_it_and_visual_fixes_do():
     """A GPS1 reading's update leaves the tilt's acceleration as it was, its mean and its variance (taught, the tilt
-    let the filter follow a slowly dragged GPS1 as an acceleration); the position and velocity it updates are those
-    the optimal gain gives in every other state. A visual fix teaches it."""
+    let the filter follow a slowly dragged GPS1 as an acceleration), while the position takes the reading. A visual
+    fix teaches it."""
     cfg = FusionConfig(tilt_error_deg=0.1)
     rng = np.random.default_rng(14)
     f = make(cfg, sigma_p=0.5, sigma_v=0.2)
